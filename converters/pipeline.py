@@ -1,0 +1,112 @@
+"""The conversion pipeline shared by every converter: decode and compress on a thread pool,
+write chunks in order, drop or refuse bad frames, and leave nothing behind on failure."""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from bgs_batch.errors import InputError
+from bgs_batch.signals import interruptible
+from bgs_batch.store import (
+    DEFAULT_COMPRESSION_LEVEL,
+    EncodedFrame,
+    FrameStoreWriter,
+    StoreMeta,
+    encode_frame,
+)
+
+DEFAULT_WORKERS = 2
+IN_FLIGHT_PER_WORKER = 2  # frames decoded ahead per worker: bounds memory, keeps cores busy
+
+
+@dataclass(frozen=True)
+class SourceFrame:
+    """One frame of a recording, not yet decoded.
+
+    `load` returns (rgb (H, W, 3) uint8 in RGB order, depth (H, W) uint16 units or float32
+    metres) and raises `InputError` naming the offending file when the data is bad.
+    """
+
+    name: str
+    timestamp: float
+    pose_gt: np.ndarray | None
+    load: Callable[[], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass
+class ConversionReport:
+    """What a conversion wrote and what it had to drop."""
+
+    path: Path
+    frames: int
+    seconds: float
+    skipped: list[dict[str, str]] = field(default_factory=list)
+
+
+def write_store(
+    frames: Iterable[SourceFrame],
+    out: Path,
+    meta: StoreMeta,
+    *,
+    overwrite: bool = False,
+    skip_bad_frames: bool = False,
+    workers: int = DEFAULT_WORKERS,
+    level: int = DEFAULT_COMPRESSION_LEVEL,
+    progress: Callable[[int], None] | None = None,
+) -> ConversionReport:
+    """Decode, compress and write `frames` into a new store at `out` (atomically).
+
+    Frames are decoded and compressed `workers` at a time with a bounded look-ahead, and written
+    in input order. A bad frame aborts the conversion with its error, or is dropped and listed in
+    the store's provenance when `skip_bad_frames` is set. Ctrl-C / SIGTERM abort cleanly.
+    """
+    start = time.perf_counter()
+    skipped: list[dict[str, str]] = []
+
+    def encode(frame: SourceFrame) -> EncodedFrame:
+        rgb, depth = frame.load()
+        return encode_frame(rgb, depth, frame.timestamp, frame.pose_gt, level)
+
+    with (
+        interruptible(),
+        FrameStoreWriter(out, meta, overwrite=overwrite, level=level) as writer,
+        ThreadPoolExecutor(max(1, workers)) as pool,
+    ):
+        pending: deque[tuple[SourceFrame, Future[EncodedFrame]]] = deque()
+
+        def drain_one() -> None:
+            frame, future = pending.popleft()
+            try:
+                writer.append(future.result(), frame.name)
+            except InputError as err:
+                if not skip_bad_frames:
+                    pool.shutdown(cancel_futures=True)
+                    raise
+                skipped.append({"frame": frame.name, "reason": str(err)})
+            if progress is not None:
+                progress(1)
+
+        try:
+            for frame in frames:
+                pending.append((frame, pool.submit(encode, frame)))
+                if len(pending) >= workers * IN_FLIGHT_PER_WORKER:
+                    drain_one()
+            while pending:
+                drain_one()
+        except BaseException:
+            pool.shutdown(cancel_futures=True)
+            raise
+        if len(writer) == 0:
+            raise InputError(f"every frame was bad; nothing written to {out}")
+        if skipped:
+            writer.meta = replace(meta, provenance={**meta.provenance, "skipped_frames": skipped})
+        path = writer.finish()
+    return ConversionReport(path, frames=len(writer), seconds=time.perf_counter() - start,
+                            skipped=skipped)  # fmt: skip

@@ -1,0 +1,295 @@
+"""TUM RGB-D folders (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``) → frame store.
+
+File formats follow the TUM RGB-D benchmark: list files of ``timestamp filename`` lines with ``#``
+comments, 16-bit depth PNGs with 5000 units per metre, and ``timestamp tx ty tz qx qy qz qw``
+ground truth (camera-to-world of the colour camera's optical centre). Folders in the ETH3D
+SLAM layout carry their pinhole intrinsics in ``calibration.txt`` (``fx fy cx cy``).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from bgs_batch.errors import InputError
+from bgs_batch.geometry import interpolate_poses
+from bgs_batch.store import StoreMeta
+from converters.association import associate
+from converters.pipeline import SourceFrame
+
+TUM_DEPTH_SCALE = 5000.0
+QUATERNION_NORM_TOLERANCE = 1e-2  # TUM prints 4 decimals; anything further off is corrupt
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics (fx, fy, cx, cy) and OpenCV distortion (k1, k2, p1, p2, k3)."""
+
+    intrinsics: tuple[float, float, float, float]
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        fx, fy, cx, cy = self.intrinsics
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+# Published calibration of the TUM RGB-D colour cameras (vision.in.tum.de, "File Formats").
+TUM_CAMERAS: dict[str, Camera] = {
+    "freiburg1": Camera((517.3, 516.5, 318.6, 255.3), (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+    "freiburg2": Camera((520.9, 521.0, 325.1, 249.7), (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
+    "freiburg3": Camera((535.4, 539.2, 320.1, 247.6)),
+}
+
+
+@dataclass(frozen=True)
+class TumOptions:
+    """Choices of a TUM conversion; every one is recorded in the store's provenance."""
+
+    tolerance: float = 0.02  # s, max |t_rgb - t_depth| for an association
+    gt_max_gap: float = 0.1  # s, max spacing of the two GT samples bracketing a frame
+    intrinsics: tuple[float, float, float, float] | None = None  # overrides detection
+    distortion: tuple[float, float, float, float, float] | None = None  # overrides detection
+    undistort: bool = False
+    stride: int = 1
+    max_frames: int | None = None
+
+
+def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
+    """Parse a TUM list file into strictly increasing timestamps and file names."""
+    if not path.is_file():
+        raise InputError(f"{path} is missing; a TUM RGB-D folder needs rgb.txt and depth.txt")
+    stamps: list[float] = []
+    names: list[str] = []
+    for number, line in _data_lines(path):
+        fields = line.split()
+        if len(fields) != 2:
+            raise InputError(f"{path}:{number}: expected 'timestamp filename', got {line!r}")
+        stamp = _parse_float(fields[0], path, number)
+        if stamps and stamp <= stamps[-1]:
+            kind = "duplicate" if stamp == stamps[-1] else "decreasing"
+            raise InputError(
+                f"{path}:{number}: {kind} timestamp {fields[0]}; timestamps must strictly "
+                "increase: sort the file and remove repeated lines"
+            )
+        stamps.append(stamp)
+        names.append(fields[1])
+    if not stamps:
+        raise InputError(f"{path} lists no frames")
+    return np.asarray(stamps), names
+
+
+def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Parse ``groundtruth.txt`` into (times, translations (N, 3), unit quaternions xyzw (N, 4))."""
+    rows = []
+    for number, line in _data_lines(path):
+        fields = line.split()
+        if len(fields) != 8:
+            raise InputError(f"{path}:{number}: expected 'timestamp tx ty tz qx qy qz qw'")
+        row = [_parse_float(x, path, number) for x in fields]
+        norm = np.linalg.norm(row[4:])
+        if not np.all(np.isfinite(row)) or abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+            raise InputError(
+                f"{path}:{number}: quaternion {fields[4:]} has norm {norm:.4f}, not 1; the file "
+                "is corrupt: restore it from the dataset or delete it to convert without GT"
+            )
+        if rows and row[0] <= rows[-1][0]:
+            raise InputError(f"{path}:{number}: timestamps must strictly increase")
+        rows.append(row)
+    if not rows:
+        raise InputError(f"{path} holds no poses; delete it to convert without ground truth")
+    data = np.asarray(rows)
+    quats = data[:, 4:] / np.linalg.norm(data[:, 4:], axis=1, keepdims=True)
+    return data[:, 0], data[:, 1:4], quats
+
+
+def _data_lines(path: Path):
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for number, line in enumerate(fh, 1):
+            line = line.strip()
+            if line and not line.startswith("#"):
+                yield number, line
+
+
+def _parse_float(text: str, path: Path, number: int) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise InputError(f"{path}:{number}: {text!r} is not a number") from None
+
+
+def detect_camera(folder: Path, options: TumOptions) -> tuple[Camera, dict[str, str]]:
+    """Pick intrinsics and distortion: options > ``calibration.txt`` > freiburg name."""
+    found: Camera | None = None
+    source = ""
+    calibration = folder / "calibration.txt"
+    name = re.search(r"freiburg([123])", folder.resolve().name)
+    if calibration.is_file():
+        values = [_parse_float(x, calibration, 1) for x in calibration.read_text().split()]
+        if len(values) != 4:
+            raise InputError(f"{calibration}: expected one line 'fx fy cx cy'")
+        found, source = Camera(tuple(values)), "calibration.txt"
+    elif name:
+        key = f"freiburg{name.group(1)}"
+        found, source = TUM_CAMERAS[key], f"{key} (published TUM calibration)"
+    if options.intrinsics is None and found is None:
+        raise InputError(
+            f"cannot tell the camera of {folder}: its name has no freiburg1/2/3 and it has no "
+            "calibration.txt; pass --intrinsics FX FY CX CY (and --distortion if needed)"
+        )
+    intrinsics = options.intrinsics or found.intrinsics
+    distortion = options.distortion or (found.distortion if found else Camera.distortion)
+    provenance = {
+        "intrinsics_source": "--intrinsics" if options.intrinsics else source,
+        "distortion_source": "--distortion" if options.distortion else (source or "none (zero)"),
+    }
+    return Camera(tuple(map(float, intrinsics)), tuple(map(float, distortion))), provenance
+
+
+@dataclass(frozen=True)
+class _Undistorter:
+    """Consistent undistortion of colour (bilinear) and depth (nearest: no mixed depths)."""
+
+    map_x: np.ndarray
+    map_y: np.ndarray
+
+    @classmethod
+    def build(cls, camera: Camera, size: tuple[int, int]) -> _Undistorter:
+        k = camera.matrix
+        map_x, map_y = cv2.initUndistortRectifyMap(
+            k, np.asarray(camera.distortion), None, k, size, cv2.CV_32FC1
+        )
+        return cls(map_x, map_y)
+
+    def __call__(self, rgb: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rgb = cv2.remap(rgb, self.map_x, self.map_y, cv2.INTER_LINEAR, borderValue=0)
+        depth = cv2.remap(depth, self.map_x, self.map_y, cv2.INTER_NEAREST, borderValue=0)
+        return rgb, depth
+
+
+def _read_image(path: Path, kind: str) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(
+            f"{path}: cannot be read as an image (missing, truncated or not a PNG); restore "
+            "it from the dataset or pass --skip-bad-frames to drop the frame"
+        )
+    if kind == "rgb":
+        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in (3, 4):
+            raise InputError(f"{path}: expected an 8-bit colour image, got {image.dtype} "
+                             f"{image.shape}")  # fmt: skip
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2RGB if image.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    if image.dtype != np.uint16 or image.ndim != 2:
+        raise InputError(f"{path}: expected a 16-bit single-channel depth PNG, got "
+                         f"{image.dtype} {image.shape}")  # fmt: skip
+    return image
+
+
+def load_pair(
+    rgb_path: Path, depth_path: Path, undistort: _Undistorter | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Decode one RGB-D pair (RGB uint8, depth uint16 in 1/5000 m), undistorted if asked."""
+    rgb, depth = _read_image(rgb_path, "rgb"), _read_image(depth_path, "depth")
+    if rgb.shape[:2] != depth.shape:
+        raise InputError(
+            f"{rgb_path} is {rgb.shape[1]}x{rgb.shape[0]} but {depth_path} is "
+            f"{depth.shape[1]}x{depth.shape[0]}; TUM depth must be registered to colour pixel "
+            "for pixel: use the dataset's registered depth"
+        )
+    return undistort(rgb, depth) if undistort else (rgb, depth)
+
+
+@dataclass(frozen=True)
+class TumPlan:
+    """Everything decided before decoding: which frames, their poses and the store metadata."""
+
+    frames: list[SourceFrame]
+    meta: StoreMeta
+
+
+def plan_tum(folder: Path, options: TumOptions, *, skip_bad_frames: bool = False) -> TumPlan:
+    """Read the list files, associate, interpolate GT and check files, without decoding images."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder} is not a folder; pass a TUM RGB-D sequence folder")
+    if options.stride < 1 or (options.max_frames is not None and options.max_frames < 1):
+        raise InputError("--stride and --max-frames must be at least 1")
+    rgb_t, rgb_names = read_file_list(folder / "rgb.txt")
+    depth_t, depth_names = read_file_list(folder / "depth.txt")
+    associated = associate(rgb_t, depth_t, options.tolerance)
+    if len(associated) == 0:
+        raise InputError(
+            f"{folder}: no RGB frame has a depth frame within {options.tolerance} s; check that "
+            "rgb.txt and depth.txt belong to the same recording, or raise --tolerance"
+        )
+    pairs = associated[:: options.stride][: options.max_frames]
+    stamps = rgb_t[pairs[:, 0]]
+
+    gt_file = folder / "groundtruth.txt"
+    poses = None
+    if gt_file.is_file():
+        poses = interpolate_poses(*read_groundtruth(gt_file), stamps, options.gt_max_gap)
+
+    files = [(folder / rgb_names[i], folder / depth_names[j]) for i, j in pairs.tolist()]
+    missing = [str(p) for pair in files for p in pair if not p.is_file()]
+    if missing and not skip_bad_frames:
+        more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+        raise InputError(
+            f"{folder}: referenced image(s) missing: {', '.join(missing[:3])}{more}; restore "
+            "them or pass --skip-bad-frames to drop those frames"
+        )
+
+    camera, camera_provenance = detect_camera(folder, options)
+    undistort = None
+    applied = options.undistort and any(camera.distortion)
+    if applied:
+        first = next((pair for pair in files if pair[0].is_file()), files[0])
+        h, w = _read_image(first[0], "rgb").shape[:2]
+        undistort = _Undistorter.build(camera, (w, h))
+
+    frames = [
+        SourceFrame(
+            name=f"{rgb.relative_to(folder)} + {depth.relative_to(folder)}",
+            timestamp=float(t),
+            pose_gt=None if poses is None or not np.all(np.isfinite(poses[k])) else poses[k],
+            load=partial(load_pair, rgb, depth, undistort),
+        )
+        for k, ((rgb, depth), t) in enumerate(zip(files, stamps, strict=True))
+    ]
+    diffs = np.abs(rgb_t[pairs[:, 0]] - depth_t[pairs[:, 1]])
+    provenance = {
+        "association": "greedy one-to-one by nearest timestamp (TUM associate.py)",
+        "association_tolerance_s": options.tolerance,
+        "association_max_diff_s": float(diffs.max()),
+        "rgb_listed": len(rgb_t),
+        "depth_listed": len(depth_t),
+        "associated": len(associated),
+        "stride": options.stride,
+        "max_frames": options.max_frames,
+        "depth_scale_source": "TUM convention (5000 units per metre)",
+        "undistort": bool(applied),
+        **camera_provenance,
+    }
+    if poses is not None:
+        provenance.update(
+            gt_source="groundtruth.txt",
+            gt_interpolation=f"linear position, slerp rotation, bracket <= {options.gt_max_gap} s",
+            gt_frames=int(np.all(np.isfinite(poses), axis=(1, 2)).sum()),
+        )
+    meta = StoreMeta(
+        source_format="tum",
+        source_path=str(folder.resolve()),
+        sequence=folder.resolve().name,
+        intrinsics=camera.matrix,
+        depth_scale=TUM_DEPTH_SCALE,
+        distortion=camera.distortion,
+        distortion_applied=bool(applied),
+        has_gt=poses is not None,
+        provenance=provenance,
+    )
+    return TumPlan(frames, meta)

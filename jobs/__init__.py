@@ -1,0 +1,1 @@
+"""Job directories: run, checkpoint, resume, lock, signals and Slurm submission."""

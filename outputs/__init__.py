@@ -1,0 +1,1 @@
+"""What users take away from a run: PLY maps, trajectories, uncertainty images, metrics, reports."""

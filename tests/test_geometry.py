@@ -1,0 +1,62 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bgs_batch.geometry import interpolate_poses, matrix_to_quat, pose_matrix, quat_to_matrix, slerp
+
+unit_quats = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(
+    lambda q: np.linalg.norm(q) > 0.1
+).map(lambda q: np.asarray(q) / np.linalg.norm(q))
+
+
+def axis_angle(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    return np.concatenate([axis * np.sin(angle / 2), [np.cos(angle / 2)]])
+
+
+@given(unit_quats)
+@settings(max_examples=200, deadline=None)
+def test_quaternion_round_trip(q):
+    rot = quat_to_matrix(q)
+    assert np.allclose(rot @ rot.T, np.eye(3), atol=1e-12)
+    assert np.isclose(np.linalg.det(rot), 1.0)
+    back = matrix_to_quat(rot)
+    assert back[3] >= 0
+    assert np.allclose(back, q, atol=1e-9) or np.allclose(back, -q, atol=1e-9)
+
+
+def test_quat_to_matrix_closed_form():
+    # 90 degrees about z maps x to y
+    rot = quat_to_matrix(axis_angle([0, 0, 1], np.pi / 2))
+    assert np.allclose(rot @ [1, 0, 0], [0, 1, 0])
+    assert np.allclose(matrix_to_quat(np.eye(3)), [0, 0, 0, 1])
+    # 180 degrees: the numerically delicate case
+    assert np.allclose(np.abs(matrix_to_quat(quat_to_matrix([1.0, 0, 0, 0]))), [1, 0, 0, 0])
+
+
+def test_slerp_constant_rate_and_short_way():
+    q0, q1 = axis_angle([0, 1, 0], 0.2), axis_angle([0, 1, 0], 1.0)
+    assert np.allclose(slerp(q0, q1, 0.25), axis_angle([0, 1, 0], 0.4))
+    # -q1 is the same rotation; slerp must still take the short way
+    assert np.allclose(slerp(q0, -q1, 0.25), axis_angle([0, 1, 0], 0.4))
+    assert np.allclose(slerp(q0, q0, 0.7), q0)
+
+
+def test_interpolate_poses_linear_slerp_and_gaps():
+    times = np.array([0.0, 0.1, 0.5])
+    trans = np.array([[0, 0, 0], [1.0, 2, 3], [5, 5, 5]])
+    quats = np.stack([axis_angle([0, 0, 1], a) for a in (0.0, 0.4, 0.5)])
+    out = interpolate_poses(times, trans, quats, np.array([0.025, 0.1, 0.3, -1.0, 0.6]), 0.1)
+    assert np.allclose(out[0], pose_matrix([0.25, 0.5, 0.75], axis_angle([0, 0, 1], 0.1)))
+    assert np.allclose(out[1], pose_matrix(trans[1], quats[1]))  # exactly on a sample
+    assert np.isnan(out[2]).all()  # bracket 0.1..0.5 is wider than 0.1 s
+    assert np.isnan(out[3]).all() and np.isnan(out[4]).all()  # outside the samples
+
+
+@pytest.mark.parametrize("n", [0, 1])
+def test_interpolate_poses_few_samples(n):
+    out = interpolate_poses(np.zeros(n), np.zeros((n, 3)), np.tile([0, 0, 0, 1.0], (n, 1)),
+                            np.array([0.0, 1.0]), 0.1)  # fmt: skip
+    assert np.isnan(out[1]).all()
+    assert np.isnan(out[0]).all() == (n == 0)
