@@ -20,6 +20,7 @@ from bgs_batch.store import (
     FrameStoreWriter,
     StoreMeta,
     encode_frame,
+    temp_path,
 )
 
 DEFAULT_WORKERS = 2
@@ -67,6 +68,14 @@ def write_store(
     in input order. A bad frame aborts the conversion with its error, or is dropped and listed in
     the store's provenance when `skip_bad_frames` is set. Ctrl-C / SIGTERM abort cleanly.
     """
+    with interruptible():
+        try:
+            return _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progress)
+        finally:  # a signal can land between the temp file's creation and the writer's `with`
+            temp_path(out).unlink(missing_ok=True)
+
+
+def _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progress):
     start = time.perf_counter()
     skipped: list[dict[str, str]] = []
 
@@ -75,7 +84,6 @@ def write_store(
         return encode_frame(rgb, depth, frame.timestamp, frame.pose_gt, level)
 
     with (
-        interruptible(),
         FrameStoreWriter(out, meta, overwrite=overwrite, level=level) as writer,
         ThreadPoolExecutor(max(1, workers)) as pool,
     ):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import cv2
@@ -30,10 +31,12 @@ def make_tum_folder(
     name: str = "rgbd_dataset_freiburg1_test",
     gt: bool = True,
     seed: int = 0,
+    distinct: bool = True,
 ) -> Path:
     """Write a small, valid TUM folder with random images; return it.
 
-    RGB at 30 Hz, depth 3 ms later, GT at 100 Hz around a slow, known motion.
+    RGB at 30 Hz, depth 3 ms later, GT at 100 Hz around a slow, known motion. With
+    `distinct=False` every frame repeats the first one's images (fast to make when long).
     """
     rng = np.random.default_rng(seed)
     folder = root / name
@@ -43,11 +46,17 @@ def make_tum_folder(
     rgb_lines, depth_lines = [], []
     for i in range(frames):
         t = T0 + i / 30
-        rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
-        depth = rng.integers(2500, 20000, (h, w), dtype=np.uint16)
-        depth[0, :4] = 0
-        cv2.imwrite(str(folder / f"rgb/{t:.6f}.png"), rgb[..., ::-1])
-        cv2.imwrite(str(folder / f"depth/{t + 0.003:.6f}.png"), depth)
+        rgb_file, depth_file = folder / f"rgb/{t:.6f}.png", folder / f"depth/{t + 0.003:.6f}.png"
+        if distinct or i == 0:
+            rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+            depth = rng.integers(2500, 20000, (h, w), dtype=np.uint16)
+            depth[0, :4] = 0
+            cv2.imwrite(str(rgb_file), rgb[..., ::-1])
+            cv2.imwrite(str(depth_file), depth)
+            first = rgb_file, depth_file
+        else:
+            shutil.copyfile(first[0], rgb_file)
+            shutil.copyfile(first[1], depth_file)
         rgb_lines.append(f"{t:.6f} rgb/{t:.6f}.png\n")
         depth_lines.append(f"{t + 0.003:.6f} depth/{t + 0.003:.6f}.png\n")
     (folder / "rgb.txt").write_text(tum_header("color images", "timestamp filename")

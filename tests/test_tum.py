@@ -1,0 +1,221 @@
+"""TUM conversion: correctness on made-up and real data, and every bad input the issue lists."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from conftest import gt_pose, make_tum_folder
+
+from bgs_batch.cli import main
+from bgs_batch.geometry import pose_matrix
+from bgs_batch.store import FrameStore, temp_path
+
+
+def convert(folder, out, *args):
+    result = CliRunner().invoke(main, ["-q", "convert", "tum", str(folder), "-o", str(out), *args])
+    return result
+
+
+def assert_fails(result, code, *needles):
+    assert result.exit_code == code, result.output
+    for needle in needles:
+        assert needle in result.output, result.output
+
+
+def test_converts_pixels_timestamps_and_interpolated_gt(tum_folder, tmp_path):
+    out = tmp_path / "seq.h5"
+    result = convert(tum_folder, out)
+    assert result.exit_code == 0, result.output
+    with FrameStore(out) as store:
+        assert len(store) == 6 and store.depth_scale == 5000
+        fx_fy_cx_cy = store.intrinsics[[0, 1, 0, 1], [0, 1, 2, 2]]
+        assert np.allclose(fx_fy_cx_cy, [517.3, 516.5, 318.6, 255.3])
+        assert store.provenance["intrinsics_source"].startswith("freiburg1")
+        assert store.attrs["source_format"] == "tum"
+        names = sorted((tum_folder / "rgb").iterdir())
+        for frame, name in zip(store, names, strict=True):
+            assert np.array_equal(frame.rgb, cv2.imread(str(name))[..., ::-1])
+            assert frame.timestamp == float(name.stem)
+            # GT is sampled at 100 Hz from a constant-rate motion: lerp + slerp are exact
+            assert np.allclose(frame.pose_gt, pose_matrix(*np.split(gt_pose(frame.timestamp), [3])),
+                               atol=2e-6)  # fmt: skip
+        depth0 = cv2.imread(str(sorted((tum_folder / "depth").iterdir())[0]), -1)
+        assert np.array_equal(store.read_depth_raw(0), depth0)
+        assert store[0].depth[0, 0] == 0
+
+
+def test_stride_max_frames_and_no_gt(tmp_path):
+    folder = make_tum_folder(tmp_path, frames=9, gt=False)
+    out = tmp_path / "s.h5"
+    assert convert(folder, out, "--stride", "2", "--max-frames", "3").exit_code == 0
+    with FrameStore(out) as store:
+        assert len(store) == 3 and not store.has_gt
+        assert np.allclose(np.diff(store.timestamps), 2 / 30, atol=1e-5)
+        assert store.provenance["associated"] == 9
+
+
+def test_camera_choice_precedence(tmp_path):
+    folder = make_tum_folder(tmp_path, name="my_room")
+    assert_fails(convert(folder, tmp_path / "a.h5"), 3, "--intrinsics", "calibration.txt")
+    assert not (tmp_path / "a.h5").exists()
+    (folder / "calibration.txt").write_text("100 101 15.5 11.5\n")
+    assert convert(folder, tmp_path / "b.h5").exit_code == 0
+    assert FrameStore(tmp_path / "b.h5").intrinsics[0, 0] == 100
+    args = ["--intrinsics", "1", "2", "3", "4", "--distortion", "0.1", "0", "0", "0", "0"]
+    assert convert(folder, tmp_path / "c.h5", *args).exit_code == 0
+    store = FrameStore(tmp_path / "c.h5")
+    assert store.intrinsics[1, 1] == 2 and store.attrs["distortion"][0] == 0.1
+    assert store.provenance["intrinsics_source"] == "--intrinsics"
+
+
+def test_undistort_rgb_and_depth_consistently(tum_folder, tmp_path):
+    out = tmp_path / "u.h5"
+    assert convert(tum_folder, out, "--undistort").exit_code == 0
+    with FrameStore(out) as store:
+        assert bool(store.attrs["distortion_applied"]) and store.provenance["undistort"]
+        raw = cv2.imread(str(sorted((tum_folder / "depth").iterdir())[0]), -1)
+        stored = store.read_depth_raw(0)
+        # nearest-neighbour remap invents no depth values (no mixing across edges)
+        assert set(np.unique(stored)) - {0} <= set(np.unique(raw))
+        assert not np.array_equal(stored, raw)
+        # colour went through the same map: it matches cv2.undistort of the source image
+        k, dist = store.intrinsics, np.asarray(store.attrs["distortion"])
+        source = cv2.imread(str(sorted((tum_folder / "rgb").iterdir())[0]))[..., ::-1]
+        inner = np.s_[4:-4, 4:-4]
+        expected = cv2.undistort(np.ascontiguousarray(source), k, dist)
+        error = np.abs(store[0].rgb[inner].astype(int) - expected[inner])
+        assert error.max() <= 4 and error.mean() < 0.5  # cv2.undistort uses fixed-point maps
+
+
+# ---------------------------------------------------------------- bad input, one test each
+
+
+def test_missing_list_file(tum_folder, tmp_path):
+    (tum_folder / "depth.txt").unlink()
+    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, "depth.txt is missing")
+    assert not (tmp_path / "s.h5").exists()
+
+
+def test_missing_referenced_image_and_skip(tum_folder, tmp_path):
+    victim = sorted((tum_folder / "rgb").iterdir())[2]
+    victim.unlink()
+    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, str(victim), "--skip-bad-frames")
+    assert not (tmp_path / "s.h5").exists()
+    result = convert(tum_folder, tmp_path / "s.h5", "--skip-bad-frames")
+    assert result.exit_code == 0 and "5 frames, 1 skipped" in result.output
+    assert FrameStore(tmp_path / "s.h5").provenance["skipped_frames"][0]["frame"].startswith(
+        f"rgb/{victim.name}"
+    )
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage"])
+def test_unreadable_png(tum_folder, tmp_path, damage):
+    victim = sorted((tum_folder / "depth").iterdir())[3]
+    data = victim.read_bytes()
+    victim.write_bytes(data[: len(data) // 2] if damage == "truncate" else b"not a png")
+    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, str(victim), "cannot be read")
+    assert list(tmp_path.glob("s.h5*")) == []
+    result = convert(tum_folder, tmp_path / "s.h5", "--skip-bad-frames")
+    assert result.exit_code == 0 and "1 skipped" in result.output
+
+
+def test_rgb_depth_size_mismatch(tum_folder, tmp_path):
+    victim = sorted((tum_folder / "depth").iterdir())[1]
+    cv2.imwrite(str(victim), np.ones((10, 10), np.uint16))
+    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, str(victim), "registered")
+    assert list(tmp_path.glob("s.h5*")) == []
+
+
+def test_frame_size_changes_mid_sequence(tum_folder, tmp_path):
+    rgb = sorted((tum_folder / "rgb").iterdir())[4]
+    depth = sorted((tum_folder / "depth").iterdir())[4]
+    cv2.imwrite(str(rgb), np.zeros((12, 16, 3), np.uint8))
+    cv2.imwrite(str(depth), np.zeros((12, 16), np.uint16))
+    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, rgb.name, "first frame")
+
+
+def test_zero_associations(tum_folder, tmp_path):
+    lines = (tum_folder / "depth.txt").read_text().splitlines()
+    shifted = [ln if ln.startswith("#") else f"{float(ln.split()[0]) + 100:.6f} {ln.split()[1]}"
+               for ln in lines]  # fmt: skip
+    (tum_folder / "depth.txt").write_text("\n".join(shifted))
+    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, "no RGB frame", "--tolerance")
+
+
+@pytest.mark.parametrize("kind", ["duplicate", "decreasing"])
+def test_non_monotonic_timestamps(tum_folder, tmp_path, kind):
+    lines = (tum_folder / "rgb.txt").read_text().splitlines()
+    lines.insert(5, lines[4] if kind == "duplicate" else lines[3])
+    (tum_folder / "rgb.txt").write_text("\n".join(lines))
+    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, "rgb.txt:6", kind)
+
+
+def test_bad_gt_quaternion(tum_folder, tmp_path):
+    lines = (tum_folder / "groundtruth.txt").read_text().splitlines()
+    fields = lines[10].split()
+    lines[10] = " ".join(fields[:4] + ["0.5", "0.5", "0.5", "0.9"])
+    (tum_folder / "groundtruth.txt").write_text("\n".join(lines))
+    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, "groundtruth.txt:11", "norm")
+
+
+def test_output_exists(tum_folder, tmp_path):
+    out = tmp_path / "s.h5"
+    out.write_text("precious")
+    assert_fails(convert(tum_folder, out), 4, "--overwrite")
+    assert out.read_text() == "precious"
+    assert convert(tum_folder, out, "--overwrite").exit_code == 0
+    assert len(FrameStore(out)) == 6
+
+
+def test_not_a_folder(tmp_path):
+    assert_fails(convert(tmp_path / "nope", tmp_path / "s.h5"), 3, "is not a folder")
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_interrupted_conversion_leaves_nothing(tmp_path, signum):
+    folder = make_tum_folder(tmp_path, frames=400, size=(640, 480), distinct=False)
+    out = tmp_path / "s.h5"
+    bgs = Path(sys.executable).with_name("bgs")
+    proc = subprocess.Popen([bgs, "-q", "convert", "tum", folder, "-o", out, "--workers", "1"],
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+    deadline = time.monotonic() + 60
+    while not temp_path(out).exists() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.005)
+    assert proc.poll() is None, "conversion finished before it could be interrupted"
+    os.kill(proc.pid, signum)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signum, err
+    assert "interrupted" in err
+    assert not out.exists() and not temp_path(out).exists()
+
+
+# ---------------------------------------------------------------- the real TUM excerpt
+
+
+@pytest.mark.slow
+def test_real_fr1_rpy_excerpt(tum_excerpt, tmp_path):
+    out = tmp_path / "fr1.h5"
+    assert convert(tum_excerpt, out).exit_code == 0
+    result = CliRunner().invoke(main, ["inspect", str(out), "--json"])
+    assert result.exit_code == 0
+    import json
+
+    summary = json.loads(result.output)
+    assert summary["frames"] == 240 and (summary["width"], summary["height"]) == (640, 480)
+    assert summary["gt_coverage_percent"] == 100.0
+    assert 76 < summary["depth_valid_percent"] < 79  # data/README: about 77 %
+    with FrameStore(out) as store:
+        first = store[0]
+        assert np.array_equal(first.rgb, cv2.imread(str(tum_excerpt / "rgb/1305031229.528748.png"))
+                              [..., ::-1])  # fmt: skip
+        # GT is within one 100 Hz sample of the nearest raw pose (hand-held motion, < 1 cm/10 ms)
+        gt = np.loadtxt(tum_excerpt / "groundtruth.txt")
+        nearest = gt[np.argmin(np.abs(gt[:, 0] - first.timestamp))]
+        assert np.linalg.norm(first.pose_gt[:3, 3] - nearest[1:4]) < 0.01
