@@ -1,0 +1,229 @@
+"""All settings of a SLAM run in one typed place, presets as data, ``--set key=value`` overrides.
+
+Field defaults are the paper's and the authors' settings (the ``paper`` preset); the ``cpu``
+preset overrides a few of them for a 2-core machine. Where the paper and the authors' code
+disagree, the field says which one it follows and the other is one override away.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from bgs_batch.errors import BgsError
+
+
+class ConfigError(BgsError):
+    """A preset name or a ``--set`` override is invalid."""
+
+    exit_code = 2
+
+
+@dataclass
+class UncertaintyConfig:
+    """Predictive variance (DESIGN.md §4; paper §III-A, §III-D)."""
+
+    initial_logit: float = -7.0  # r_i; v_i = softplus(r_i) ≈ 9.1e-4
+    map_floor: float = 1e-3  # added to the rendered V_C, V_D
+    unobserved_alpha: float = 0.6  # pixels with A below this are "unobserved" ...
+    unobserved_variance: float = 100.0  # ... and get this variance (no gradient)
+    full_grad: bool = False  # False: the authors' gradient (T_i² held constant)
+    sensor_hidden: int = 32  # channels of the sensor-noise network
+    sensor_min: float = 1e-4  # softplus output + this floor
+    sensor_lr: float = 1e-4  # Adam, trained in mapping only
+
+
+@dataclass
+class TrackingConfig:
+    """Uncertainty-normalised L1 tracking (paper Eq. 15-17; DESIGN.md §4)."""
+
+    iterations: int = 200
+    rot_lr: float = 0.002
+    trans_lr: float = 0.01
+    lambda_color: float = 900.0
+    lambda_depth: float = 900.0
+    # "paper":   λ_c Σ|r_C|/√Σ_C + λ_d Σ|r_D|/√Σ_D
+    # "authors": 0.6 Σ|r_C|/√(λ_c Σ_C) + 0.4 Σ|r_D|/√(λ_d Σ_D)
+    loss_form: Literal["paper", "authors"] = "paper"
+    authors_color_weight: float = 0.6
+    downscale: int = 1  # track on images downsampled by this factor
+    coarse_levels: int = 0  # extra pyramid levels (×2 each) optimised coarse to fine first
+    coarse_fraction: float = 0.0  # share of the iterations spent on the coarse levels
+    early_stop_rel: float = 0.0  # stop when the best loss improved by less than this ...
+    early_stop_patience: int = 0  # ... over this many iterations (0 disables early stopping)
+
+
+@dataclass
+class MappingConfig:
+    """Keyframe mapping: L_3DGS + γ(NLL_C + NLL_D) (paper Eq. 12-14; LoopSplat §3)."""
+
+    iterations: int = 100
+    new_submap_iterations: int = 100
+    current_frame_share: float = 0.4  # probability of sampling the current keyframe
+    gamma: float = 1e-3  # paper; the authors' code uses 1e-4
+    ssim_weight: float = 0.2
+    pruning_threshold: float = 0.5  # opacity, pruned at half and at the end of a round
+    downscale: int = 1
+    lr_means: float = 1e-4
+    lr_colors: float = 2.5e-3
+    lr_opacity: float = 0.05
+    lr_scales: float = 5e-3
+    lr_rotations: float = 1e-3
+    lr_uncertainty: float = 2.5e-3
+
+
+@dataclass
+class SeedingConfig:
+    """Where new Gaussians come from (LoopSplat §3)."""
+
+    new_submap_points: int = 100_000  # uniform random pixels of a submap's first frame
+    new_submap_gradient_points: int = 50_000  # sampled ∝ colour gradient magnitude
+    new_frame_points: int = 30_000  # cap for later keyframes
+    alpha_threshold: float = 0.6  # later keyframes: seed where A < this ...
+    depth_error_factor: float = 40.0  # ... or depth error > factor × median error
+    min_distance: float = 0.01  # m; candidates closer to an existing Gaussian are dropped
+    depth_push: float = 1.005  # seeds sit 0.5 % behind the surface
+    initial_opacity: float = 0.5
+
+
+@dataclass
+class SubmapConfig:
+    """When a new submap starts (LoopSplat §4)."""
+
+    mode: Literal["motion", "interval"] = "motion"
+    max_translation: float = 0.5  # m from the submap's first frame
+    max_rotation_deg: float = 50.0
+    every: int = 50  # frames, for mode "interval"
+
+
+@dataclass
+class KeyframeConfig:
+    """Predictive-surprise keyframe selection (paper §III-C)."""
+
+    mode: Literal["surprise", "every"] = "surprise"
+    threshold: float = 0.0  # K
+    max_gap: int = 5  # fallback: a keyframe at least every N frames
+
+
+@dataclass
+class Config:
+    """A whole SLAM run."""
+
+    seed: int = 0
+    threads: int = 2
+    crop_edge: int = 0  # pixels removed at every image border before anything else
+    max_depth: float = 10.0  # m; deeper readings are treated as invalid
+    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    seeding: SeedingConfig = field(default_factory=SeedingConfig)
+    submaps: SubmapConfig = field(default_factory=SubmapConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    # the paper's and the authors' settings: full resolution, 200 tracking / 100 mapping iterations
+    "paper": {},
+    # tuned for a 2-core CPU: reduced resolution, fewer iterations, coarse-to-fine tracking
+    "cpu": {
+        "tracking.iterations": 60,
+        "tracking.downscale": 2,
+        "tracking.coarse_levels": 1,
+        "tracking.coarse_fraction": 0.4,
+        "tracking.early_stop_rel": 1e-4,
+        "tracking.early_stop_patience": 10,
+        "mapping.iterations": 40,
+        "mapping.new_submap_iterations": 60,
+        "mapping.downscale": 2,
+        "seeding.new_submap_points": 30_000,
+        "seeding.new_submap_gradient_points": 15_000,
+        "seeding.new_frame_points": 10_000,
+    },
+}
+DEFAULT_PRESET = "cpu"
+
+
+def load_config(preset: str = DEFAULT_PRESET, overrides: list[str] | None = None) -> Config:
+    """The preset's config with ``key=value`` overrides applied (``tracking.iterations=50``)."""
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    config = Config()
+    for key, value in PRESETS[preset].items():
+        set_value(config, key, value)
+    for item in overrides or []:
+        key, sep, text = item.partition("=")
+        if not sep:
+            raise ConfigError(f"--set {item!r}: expected key=value, e.g. tracking.iterations=50")
+        set_value(config, key.strip(), parse_value(config, key.strip(), text.strip()))
+    return config
+
+
+def config_from_dict(data: dict[str, Any]) -> Config:
+    """Rebuild a config saved with `Config.to_dict` (e.g. from a job's ``job.json``)."""
+    config = Config()
+    for key, value in _flatten(data).items():
+        set_value(config, key, value)
+    return config
+
+
+def _flatten(data: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out |= _flatten(value, f"{prefix}{key}.")
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _field(config: Config, key: str) -> tuple[Any, dataclasses.Field]:
+    """The dataclass owning `key` and its field, or a ConfigError listing valid keys."""
+    owner: Any = config
+    parts = key.split(".")
+    for i, part in enumerate(parts):
+        fields = {f.name: f for f in dataclasses.fields(owner)}
+        if part not in fields:
+            valid = ", ".join(sorted(f"{'.'.join(parts[:i] + [n])}" for n in fields))
+            raise ConfigError(f"unknown config key {key!r}; valid keys here: {valid}")
+        if i == len(parts) - 1:
+            return owner, fields[part]
+        owner = getattr(owner, part)
+        if not dataclasses.is_dataclass(owner):
+            raise ConfigError(f"unknown config key {key!r}: {'.'.join(parts[: i + 1])} is a value")
+    raise AssertionError("unreachable")
+
+
+def parse_value(config: Config, key: str, text: str) -> Any:
+    """Convert the text of an override to the field's type."""
+    owner, f = _field(config, key)
+    kind = typing.get_type_hints(type(owner))[f.name]
+    if dataclasses.is_dataclass(getattr(owner, f.name)):
+        raise ConfigError(f"{key} is a section; set one of its fields, e.g. {key}.<field>=…")
+    try:
+        if typing.get_origin(kind) is Literal:
+            if text not in typing.get_args(kind):
+                raise ValueError(f"choose one of {', '.join(typing.get_args(kind))}")
+            return text
+        if kind is bool:
+            if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                raise ValueError("expected true or false")
+            return text.lower() in ("true", "1", "yes")
+        if kind in (int, float, str):
+            return kind(text)
+    except ValueError as err:
+        raise ConfigError(f"--set {key}={text}: {err}") from None
+    raise ConfigError(f"--set {key}: unsupported field type {kind}")
+
+
+def set_value(config: Config, key: str, value: Any) -> None:
+    owner, f = _field(config, key)
+    setattr(owner, f.name, value)
