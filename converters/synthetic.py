@@ -1,0 +1,558 @@
+"""Synthetic RGB-D sequences in TUM layout: a procedurally textured room rendered by ray casting.
+
+The scene is an axis-aligned room (z up, floor at z = 0, centred on the z axis) with seeded
+furniture-like boxes along its walls and small clutter on their tops, built as Open3D triangle
+meshes in one ``RaycastingScene``. Colour comes from a procedural texture evaluated at each ray's
+hit point (multi-octave value noise, stripes and checkers mixed per surface, low-pass filtered by
+the pixel footprint so it does not alias) under Lambertian shading from a ceiling light. Depth gets
+the Kinect v1 noise model, quantisation and holes. Everything is drawn from ``numpy`` generators
+keyed by the seed, so a seed gives byte-identical files, and is vectorised over pixels.
+
+The output is exactly a TUM RGB-D directory (``rgb/``, ``depth/``, ``rgb.txt``, ``depth.txt``,
+``groundtruth.txt``) plus ``calibration.txt`` (``fx fy cx cy``, the ETH3D convention). Ground
+truth is the exact camera-to-world pose of each rendered frame (OpenCV camera axes: x right,
+y down, z forward); depth is registered to the colour camera and rendered from the same pose, its
+time stamps are offset only so that readers must associate the two streams.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+
+from bgs_batch.errors import InputError, OutputExistsError
+from bgs_batch.geometry import matrix_to_quat
+from bgs_batch.signals import interruptible
+
+# Independent random streams derived from the seed (the second entry of the generator key).
+_SCENE_STREAM, _PATH_STREAM, _SENSOR_STREAM = 0, 1, 2
+# Plane coordinates of a hit on a face whose normal is along axis k: the other two axes.
+_PLANE_AXES = np.array([[1, 2], [0, 2], [0, 1]])
+_TUM_HEADER = "# {what}\n# file: 'synthetic (bgs synth, seed {seed})'\n# {columns}\n"
+_SIZE_LIMITS = (16, 8192)  # image width and height, pixels
+_CURVE_SAMPLES = 4096  # for measuring the length and reach of the camera path
+_GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))  # turn between noise octaves: lattices never align
+_GOLDEN_STEP = 0x9E3779B9  # 2^32 / golden ratio: seed step between octaves (well spread)
+
+
+@dataclass(frozen=True)
+class FurnitureKind:
+    """Size ranges (min, max) in metres of one kind of box standing against a wall."""
+
+    name: str
+    width: tuple[float, float]
+    depth: tuple[float, float]
+    height: tuple[float, float]
+    legs: bool = False  # a table: a thin top on four legs instead of a solid block
+
+
+FURNITURE_KINDS = (
+    FurnitureKind("cabinet", width=(0.6, 1.2), depth=(0.4, 0.6), height=(0.7, 1.1)),
+    FurnitureKind("shelf", width=(0.6, 1.0), depth=(0.3, 0.4), height=(1.5, 2.1)),
+    FurnitureKind("table", width=(0.9, 1.5), depth=(0.6, 0.8), height=(0.72, 0.78), legs=True),
+)
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What to render; every constant of the scene, camera path and sensor model is a field.
+
+    Lengths in metres, angles in radians, times in seconds, colours in [0, 1].
+    """
+
+    frames: int = 60
+    width: int = 320
+    height: int = 240
+    seed: int = 0
+    loop: bool = False  # the path is a closed curve: the last frame is taken at the first pose
+    fps: float = 30.0
+
+    # Time stamps: RGB at start_time + i / fps, depth depth_delay later (TUM's streams are not
+    # synchronous either; the offset makes readers associate by nearest time stamp).
+    start_time: float = 1_700_000_000.0
+    depth_delay: float = 0.004
+
+    # Camera: Kinect v1 / TUM focal length, scaled with the image width; principal point centred.
+    focal_at_640: float = 525.0
+    # Path: a seeded sum of low-frequency harmonics around the room centre, scaled to the speed of
+    # TUM handheld sequences (0.2-0.4 m/s, 15-30 deg/s) but kept within path_radius, so very long
+    # sequences move more slowly. The look direction sweeps yaw / pitch / roll sinusoidally.
+    speed: float = 0.3
+    turn_rate: float = 0.4  # mean yaw rate
+    path_radius: float = 0.7  # keeps the camera >= 0.5 m from furniture
+    path_harmonics: int = 3
+    path_ellipse: tuple[float, float] = (0.3, 0.7)  # minor / major axis of the first harmonic
+    path_wobble: float = 0.15  # scale of the higher harmonics (and height), relative to major
+    eye_height: float = 1.4
+    pitch: float = 0.3  # mean downward tilt
+    swing_weights: tuple[float, float, float] = (1.0, 0.3, 0.1)  # yaw, pitch, roll amplitudes ...
+    swing_limits: tuple[float, float, float] = (1.2, 0.25, 0.08)  # ... and their caps
+
+    # Scene: room size (x, y, z), furniture per wall, clutter boxes on top of each piece.
+    room_size: tuple[float, float, float] = (5.0, 4.0, 2.7)
+    furniture: tuple[FurnitureKind, ...] = FURNITURE_KINDS
+    items_per_wall: tuple[int, int] = (1, 2)
+    corner_margin: float = 0.7  # no furniture this close to a corner
+    table_top: float = 0.04  # thickness of a table top ...
+    table_leg: float = 0.05  # ... and width of its legs
+    clutter_per_top: tuple[int, int] = (0, 3)
+    clutter_size: tuple[float, float] = (0.08, 0.3)
+
+    # Texture: fbm value noise (largest wavelength, octaves), stripes and checkers mixed with
+    # seeded weights per face; detail finer than texture_min_pixels pixels fades to its mean.
+    texture_wavelength: float = 0.8
+    texture_octaves: int = 6
+    texture_persistence: float = 0.8  # amplitude ratio of successive octaves (rich fine detail)
+    noise_share: float = 0.4  # at least this share of every face's mix is noise (no flat bands)
+    stripe_period: tuple[float, float] = (0.05, 0.25)
+    stripe_warp: float = 1.5  # wood-grain distortion of the stripes by the noise, in periods
+    tile_size: tuple[float, float] = (0.15, 0.5)
+    texture_contrast: float = 1.5
+    texture_min_pixels: float = 2.0
+    # Per-face palette: two tones of one hue (HSV value ranges of the dark and light tone).
+    saturation: tuple[float, float] = (0.1, 0.6)
+    dark_value: tuple[float, float] = (0.2, 0.45)
+    light_value: tuple[float, float] = (0.65, 0.95)
+    light_hue_shift: float = 40.0  # degrees of hue between the two tones, at most
+    # Shading: Lambertian, one point light under the ceiling plus ambient light.
+    light_position: tuple[float, float, float] = (0.4, -0.3, 2.4)
+    ambient: float = 0.35
+    rgb_noise: float = 1.5  # sensor noise sigma, 8-bit levels
+
+    # Depth: Kinect v1 axial noise sigma(z) = a + b (z - z0)^2 (Nguyen et al. 2012), TUM's
+    # 5000 units per metre, invalid outside the range, at grazing incidence and in blob holes.
+    depth_scale: float = 5000.0
+    noise_a: float = 0.0012
+    noise_b: float = 0.0019
+    noise_z0: float = 0.4
+    depth_range: tuple[float, float] = (0.3, 8.0)
+    max_incidence: float = math.radians(78.0)  # no return at more grazing angles
+    hole_fraction: float = 0.03
+    hole_blobs: int = 12  # resolution of the hole field across the image width (blob size)
+
+    @property
+    def intrinsics(self) -> tuple[float, float, float, float]:
+        """Pinhole intrinsics ``(fx, fy, cx, cy)`` in pixels (pixel centres at integers)."""
+        focal = self.focal_at_640 * self.width / 640.0
+        return focal, focal, (self.width - 1) / 2.0, (self.height - 1) / 2.0
+
+    def depth_sigma(self, z: np.ndarray) -> np.ndarray:
+        """Standard deviation (m) of Kinect v1 axial depth noise at distance z (m).
+
+        Nguyen, Izadi, Lovell, "Modeling Kinect Sensor Noise for Improved 3D Reconstruction
+        and Tracking", 3DIMPVT 2012: sigma_z = 0.0012 + 0.0019 (z - 0.4)^2 for 10-60 degrees.
+        """
+        return self.noise_a + self.noise_b * (np.asarray(z) - self.noise_z0) ** 2
+
+
+def validate(config: SynthConfig) -> None:
+    """Raise InputError naming the first setting that cannot produce a sensible sequence."""
+
+    def require(ok: bool, message: str) -> None:
+        if not ok:
+            raise InputError(f"invalid synthetic sequence setting: {message}")
+
+    require(config.frames >= 2, f"--frames must be at least 2, got {config.frames}")
+    low, high = _SIZE_LIMITS
+    require(
+        low <= config.width <= high and low <= config.height <= high,
+        f"--size must be between {low}x{low} and {high}x{high}, got {config.width}x{config.height}",
+    )
+    require(0 <= config.seed < 2**63, f"--seed must be a non-negative integer, got {config.seed}")
+    require(math.isfinite(config.fps) and config.fps > 0, f"fps must be > 0, got {config.fps}")
+    half_frame = 0.5 / config.fps
+    require(
+        0 <= config.depth_delay < half_frame,
+        f"depth_delay must be in [0, {half_frame:g}) s (half a frame), got {config.depth_delay}",
+    )
+    require(min(config.room_size) > 0, f"room_size must be positive, got {config.room_size}")
+    require(
+        0 < config.depth_range[0] < config.depth_range[1] <= 65535 / config.depth_scale,
+        f"depth_range must fit 16-bit PNG at {config.depth_scale:g} units/m, "
+        f"got {config.depth_range}",
+    )
+    require(
+        0 <= config.hole_fraction < 0.5,
+        f"hole_fraction must be in [0, 0.5), got {config.hole_fraction}",
+    )
+    require(config.speed >= 0 and config.turn_rate >= 0, "speed and turn_rate must be >= 0")
+
+
+# ---------------------------------------------------------------------------------------------
+# Scene
+
+
+def _furniture_boxes(config: SynthConfig, rng: np.random.Generator) -> list[np.ndarray]:
+    """Seeded furniture along the four walls (plus clutter on tops) as (2, 3) [lo, hi] boxes."""
+    half = np.asarray(config.room_size[:2]) / 2.0
+    boxes = []
+    for along, side in ((0, -1.0), (0, 1.0), (1, -1.0), (1, 1.0)):
+        across = 1 - along
+        count = rng.integers(config.items_per_wall[0], config.items_per_wall[1] + 1)
+        start = -half[along] + config.corner_margin
+        slot = 2.0 * (half[along] - config.corner_margin) / count
+        for i in range(count):
+            kind = config.furniture[rng.integers(len(config.furniture))]
+            width = min(rng.uniform(*kind.width), slot)
+            depth, height = rng.uniform(*kind.depth), rng.uniform(*kind.height)
+            centre = start + i * slot + rng.uniform(width / 2, slot - width / 2)
+            lo, hi = np.zeros(3), np.full(3, height)
+            lo[along], hi[along] = centre - width / 2, centre + width / 2
+            lo[across], hi[across] = sorted((side * half[across], side * (half[across] - depth)))
+            boxes += _table(lo, hi, config) if kind.legs else [np.stack([lo, hi])]
+            boxes += _clutter(lo, hi, config, rng)
+    return boxes
+
+
+def _table(lo: np.ndarray, hi: np.ndarray, config: SynthConfig) -> list[np.ndarray]:
+    """A table filling the box [lo, hi]: a top slab and four legs at the corners."""
+    top = np.stack([np.r_[lo[:2], hi[2] - config.table_top], hi])
+    legs = []
+    for x in (lo[0], hi[0] - config.table_leg):
+        for y in (lo[1], hi[1] - config.table_leg):
+            leg_lo = np.array([x, y, 0.0])
+            leg_hi = leg_lo + [config.table_leg, config.table_leg, hi[2] - config.table_top]
+            legs.append(np.stack([leg_lo, leg_hi]))
+    return [top, *legs]
+
+
+def _clutter(
+    lo: np.ndarray, hi: np.ndarray, config: SynthConfig, rng: np.random.Generator
+) -> list[np.ndarray]:
+    """Small boxes standing on the top face of the box [lo, hi]."""
+    boxes = []
+    for _ in range(rng.integers(config.clutter_per_top[0], config.clutter_per_top[1] + 1)):
+        size = np.minimum(rng.uniform(*config.clutter_size, size=3), np.r_[hi[:2] - lo[:2], 1.0])
+        base = np.r_[rng.uniform(lo[:2], hi[:2] - size[:2]), hi[2]]
+        boxes.append(np.stack([base, base + size]))
+    return boxes
+
+
+def _face_table(count: int, config: SynthConfig, rng: np.random.Generator) -> dict:
+    """Seeded texture parameters of `count` faces (six per box: normal axis x sign).
+
+    Each face of the room (box 0) has its own palette; a furniture box has one for all faces.
+    """
+    hue = rng.uniform(0.0, 360.0, count)
+    shift = rng.uniform(-config.light_hue_shift, config.light_hue_shift, count)
+    sat = rng.uniform(*config.saturation, count)
+    tones = [
+        np.stack([hue, sat, rng.uniform(*config.dark_value, count)], -1),
+        np.stack([(hue + shift) % 360.0, sat, rng.uniform(*config.light_value, count)], -1),
+    ]
+    dark, light = (cv2.cvtColor(t[None].astype(np.float32), cv2.COLOR_HSV2RGB)[0] for t in tones)
+    face = np.arange(count)
+    owner = np.where(face < 6, face, face - face % 6)
+    return {
+        "dark": dark[owner],
+        "light": light[owner],
+        "seed": rng.integers(0, 2**32, count, dtype=np.uint32),
+        "mix": (  # weights of noise, stripes, checker
+            config.noise_share * np.eye(3)[0]
+            + (1.0 - config.noise_share) * rng.dirichlet(np.ones(3), count)
+        ).astype(np.float32),
+        "stripe_angle": rng.uniform(0.0, np.pi, count).astype(np.float32),
+        "stripe_period": rng.uniform(*config.stripe_period, count).astype(np.float32),
+        "tile": rng.uniform(*config.tile_size, count).astype(np.float32),
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Camera path
+
+
+def camera_poses(config: SynthConfig) -> np.ndarray:
+    """Camera-to-world poses (frames, 4, 4) of the seeded smooth path (OpenCV camera axes).
+
+    Position and look angles are harmonics of a phase running round a closed curve. A loop goes
+    round a whole number of laps (more when one lap within path_radius is too short for the
+    speed), so the last pose is the first; an open path goes half a lap, where the dominant first
+    harmonic ends far from the start (long open paths therefore move more slowly).
+    """
+    rng = np.random.default_rng((config.seed, _PATH_STREAM))
+    duration = (config.frames - 1) / config.fps
+
+    # Harmonic k has coefficients ~ 1/k^2 (smooth); the first is an ellipse of major axis 1.
+    order = np.arange(1, config.path_harmonics + 1)
+    coeffs = rng.normal(size=(2, 3, order.size)) * config.path_wobble / order**2  # cos|sin, xyz, k
+    direction = rng.uniform(0.0, 2.0 * np.pi)
+    major = np.array([np.cos(direction), np.sin(direction), 0.0])
+    minor = np.array([-major[1], major[0], 0.0]) * rng.uniform(*config.path_ellipse)
+    coeffs[0, :, 0], coeffs[1, :, 0] = major, minor
+
+    def curve(phi: np.ndarray) -> np.ndarray:
+        angles = phi[:, None] * order
+        return np.cos(angles) @ coeffs[0].T + np.sin(angles) @ coeffs[1].T
+
+    def length(laps: float) -> float:
+        dense = curve(np.linspace(0.0, 2.0 * np.pi * laps, _CURVE_SAMPLES))
+        return float(np.linalg.norm(np.diff(dense, axis=0), axis=1).sum())
+
+    one_lap = curve(np.linspace(0.0, 2.0 * np.pi, _CURVE_SAMPLES))
+    reach = np.linalg.norm(one_lap[:, :2], axis=1).max()
+    max_scale = config.path_radius / reach
+    travel = config.speed * duration
+    laps = max(1, math.ceil(travel / (max_scale * length(1)))) if config.loop else 0.5
+    scale = min(travel / length(laps), max_scale)
+    phase = 2.0 * np.pi * laps * np.linspace(0.0, 1.0, config.frames)
+    position = scale * curve(phase) + [0.0, 0.0, config.eye_height]
+
+    # Yaw / pitch / roll: sinusoids whose yaw amplitude gives the mean turn rate (mean |d/dt| of
+    # A sin is 4 A laps / duration), capped per axis.
+    amplitude = config.turn_rate * duration / (4.0 * laps)
+    swing = np.minimum(amplitude * np.asarray(config.swing_weights), config.swing_limits)
+    offsets = rng.uniform(0.0, 2.0 * np.pi, 3)
+    yaw, pitch, roll = swing[:, None] * np.sin(phase + offsets[:, None])
+    yaw = yaw + rng.uniform(0.0, 2.0 * np.pi)
+    pitch = pitch + config.pitch
+
+    forward = np.stack(
+        [np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), -np.sin(pitch)], -1
+    )
+    right = np.stack([np.sin(yaw), -np.cos(yaw), np.zeros_like(yaw)], -1)  # forward x world up
+    down = np.cross(forward, right)
+    cos_r, sin_r = np.cos(roll)[:, None], np.sin(roll)[:, None]
+    poses = np.tile(np.eye(4), (config.frames, 1, 1))
+    poses[:, :3, 0] = cos_r * right + sin_r * down
+    poses[:, :3, 1] = cos_r * down - sin_r * right
+    poses[:, :3, 2] = forward
+    poses[:, :3, 3] = position
+    return poses
+
+
+# ---------------------------------------------------------------------------------------------
+# Rendering
+
+
+def _hash(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """Uniform [0, 1) values hashed from integer lattice points (lowbias32 integer mixer)."""
+    h = (ix * np.uint32(0x8DA6B343)) ^ (iy * np.uint32(0xD8163841)) ^ seed
+    h ^= h >> np.uint32(16)
+    h *= np.uint32(0x7FEB352D)
+    h ^= h >> np.uint32(15)
+    h *= np.uint32(0x846CA68B)
+    h ^= h >> np.uint32(16)
+    return h.astype(np.float32) * np.float32(2.0**-32)
+
+
+def _value_noise(u: np.ndarray, v: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """Smoothly interpolated lattice noise in [0, 1) with unit feature size."""
+    fu, fv = np.floor(u), np.floor(v)
+    iu, iv = fu.astype(np.int64).astype(np.uint32), fv.astype(np.int64).astype(np.uint32)
+    su, sv = u - fu, v - fv
+    su, sv = su * su * (3 - 2 * su), sv * sv * (3 - 2 * sv)
+    one = np.uint32(1)
+    bottom = _hash(iu, iv, seed) * (1 - su) + _hash(iu + one, iv, seed) * su
+    top = _hash(iu, iv + one, seed) * (1 - su) + _hash(iu + one, iv + one, seed) * su
+    return bottom * (1 - sv) + top * sv
+
+
+class _Renderer:
+    """Ray-casts the seeded scene and shades / corrupts frames; one instance per sequence."""
+
+    def __init__(self, config: SynthConfig) -> None:
+        self.config = config
+        rng = np.random.default_rng((config.seed, _SCENE_STREAM))
+        half = np.asarray(config.room_size) * [0.5, 0.5, 1.0]
+        room = np.stack([half * [-1.0, -1.0, 0.0], half])
+        self.scene = o3d.t.geometry.RaycastingScene()
+        boxes = [room, *_furniture_boxes(config, rng)]
+        for lo, hi in boxes:
+            box = o3d.geometry.TriangleMesh.create_box(*(hi - lo)).translate(lo)
+            self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(box))
+        self.faces = _face_table(6 * len(boxes), config, rng)
+        fx, fy, cx, cy = config.intrinsics
+        v, u = np.mgrid[: config.height, : config.width].astype(np.float32)
+        self.rays_cam = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)  # z = 1
+        self.ray_length = np.linalg.norm(self.rays_cam, axis=-1)  # rotations keep it
+        self.light = np.asarray(config.light_position, np.float32)
+
+    def render(self, pose: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """RGB (H, W, 3) uint8 and depth (H, W) uint16 seen from camera-to-world `pose`."""
+        cfg = self.config
+        dirs = self.rays_cam @ pose[:3, :3].T.astype(np.float32)
+        origin = np.broadcast_to(pose[:3, 3].astype(np.float32), dirs.shape)
+        hit = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([origin, dirs], -1)))
+        z = hit["t_hit"].numpy()  # the rays' camera z components are 1, so t is the depth
+        hit_ok = np.isfinite(z)
+        z = np.where(hit_ok, z, np.float32(0))
+        normal = hit["primitive_normals"].numpy()
+        axis = np.abs(normal).argmax(-1)
+        face = 6 * hit["geometry_ids"].numpy().astype(np.int64) + 2 * axis
+        face += np.take_along_axis(normal, axis[..., None], -1)[..., 0] > 0
+        face = np.where(hit_ok, face, 0)
+        point = origin + z[..., None] * dirs
+        normal_dot_ray = np.einsum("...i,...i->...", normal, dirs) / self.ray_length
+        cos_incidence = np.abs(normal_dot_ray)
+
+        cos_grazing = np.float32(np.cos(cfg.max_incidence))  # beyond it depth is invalid anyway
+        footprint = z / (cfg.intrinsics[0] * np.maximum(cos_incidence, cos_grazing))
+        uv = np.take_along_axis(point, _PLANE_AXES[axis], -1)
+        albedo = self._albedo(face, uv[..., 0], uv[..., 1], footprint)
+        to_light = self.light - point
+        to_light /= np.linalg.norm(to_light, axis=-1, keepdims=True)
+        facing = normal * -np.sign(normal_dot_ray)[..., None]  # the side the camera sees
+        diffuse = np.clip(np.einsum("...i,...i->...", facing, to_light), 0.0, 1.0)
+        shade = (cfg.ambient + (1.0 - cfg.ambient) * diffuse) * hit_ok
+        noise = rng.standard_normal(albedo.shape, dtype=np.float32)
+        colour = 255.0 * albedo * shade[..., None] + cfg.rgb_noise * noise
+        rgb = np.clip(np.rint(colour), 0, 255).astype(np.uint8)
+        valid = hit_ok & (cos_incidence >= cos_grazing)
+        return rgb, self._depth(z.astype(np.float64), valid, rng)
+
+    def _albedo(
+        self, face: np.ndarray, u: np.ndarray, v: np.ndarray, footprint: np.ndarray
+    ) -> np.ndarray:
+        """Procedural surface colour at plane coordinates (u, v) of each pixel's face."""
+        cfg, faces = self.config, self.faces
+
+        def fade(pattern: np.ndarray, wavelength: np.ndarray | float) -> np.ndarray:
+            """Blend pattern detail to its mean where it is finer than the pixel footprint."""
+            keep = np.clip(wavelength / (cfg.texture_min_pixels * footprint) - 1.0, 0.0, 1.0)
+            return 0.5 + keep * (pattern - 0.5)
+
+        seed = faces["seed"][face]
+        noise = np.zeros_like(u)
+        weights = cfg.texture_persistence ** np.arange(cfg.texture_octaves)
+        for octave, weight in enumerate((weights / weights.sum()).tolist()):
+            wavelength = cfg.texture_wavelength * 0.5**octave
+            octave_seed = seed + np.uint32(_GOLDEN_STEP * octave % 2**32)
+            cos, sin = math.cos(octave * _GOLDEN_ANGLE), math.sin(octave * _GOLDEN_ANGLE)
+            layer = _value_noise(
+                (cos * u - sin * v) / wavelength, (sin * u + cos * v) / wavelength, octave_seed
+            )
+            noise += weight * fade(layer, wavelength)
+
+        angle, period = faces["stripe_angle"][face], faces["stripe_period"][face]
+        across = (u * np.cos(angle) + v * np.sin(angle)) / period + cfg.stripe_warp * noise
+        stripes = fade(0.5 + 0.5 * np.sin(2.0 * np.pi * across), period)
+        tile = faces["tile"][face]
+        checker = fade((np.floor(u / tile) + np.floor(v / tile)) % 2, tile)
+
+        mix = faces["mix"][face]
+        level = mix[..., 0] * noise + mix[..., 1] * stripes + mix[..., 2] * checker
+        level = np.clip(0.5 + cfg.texture_contrast * (level - 0.5), 0.0, 1.0)[..., None]
+        return faces["dark"][face] * (1.0 - level) + faces["light"][face] * level
+
+    def _depth(self, z: np.ndarray, valid: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Kinect-like 16-bit depth: noisy, quantised, 0 where invalid, out of range or in holes.
+
+        Holes are the top hole_fraction of a smooth random field: a few irregular blobs.
+        """
+        cfg = self.config
+        noisy = z + cfg.depth_sigma(z) * rng.standard_normal(z.shape)
+        cells = (max(2, round(cfg.hole_blobs * cfg.height / cfg.width)), cfg.hole_blobs)
+        size = (cfg.width, cfg.height)
+        field = cv2.resize(rng.standard_normal(cells), size, interpolation=cv2.INTER_CUBIC)
+        holes = field > np.quantile(field, 1.0 - cfg.hole_fraction)
+        valid = valid & (z >= cfg.depth_range[0]) & (z <= cfg.depth_range[1]) & ~holes
+        return np.where(valid, np.rint(noisy * cfg.depth_scale), 0).astype(np.uint16)
+
+
+# ---------------------------------------------------------------------------------------------
+# Output
+
+
+def synthesize(
+    out_dir: Path,
+    config: SynthConfig,
+    *,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> Path:
+    """Write a TUM-layout sequence to out_dir and return out_dir.
+
+    Frames are rendered and written one at a time (memory does not grow with length) into a
+    sibling temporary directory that replaces out_dir only when complete, so an interrupted
+    (SIGINT / SIGTERM raise ``Interrupted``) or failed run leaves nothing behind.
+    ``progress(done, total)`` is called after each frame.
+    """
+    validate(config)
+    out_dir = Path(out_dir)
+    _check_replaceable(out_dir, overwrite)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    with interruptible():
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
+        try:
+            _write_sequence(tmp, config, progress)
+            _replace(tmp, out_dir, overwrite)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+    return out_dir
+
+
+def _write_sequence(
+    root: Path, config: SynthConfig, progress: Callable[[int, int], None] | None
+) -> None:
+    """Render every frame into root and write the TUM list, ground-truth and calibration files."""
+    (root / "rgb").mkdir()
+    (root / "depth").mkdir()
+    renderer = _Renderer(config)
+    poses = camera_poses(config)
+    rgb_lines, depth_lines, gt_lines = [], [], []
+    for i, pose in enumerate(poses):
+        rgb, depth = renderer.render(pose, np.random.default_rng((config.seed, _SENSOR_STREAM, i)))
+        time = config.start_time + i / config.fps
+        stamp, depth_stamp = f"{time:.6f}", f"{time + config.depth_delay:.6f}"
+        _imwrite(root / f"rgb/{stamp}.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        _imwrite(root / f"depth/{depth_stamp}.png", depth)
+        rgb_lines.append(f"{stamp} rgb/{stamp}.png\n")
+        depth_lines.append(f"{depth_stamp} depth/{depth_stamp}.png\n")
+        values = np.r_[pose[:3, 3], matrix_to_quat(pose[:3, :3])]
+        gt_lines.append(f"{stamp} " + " ".join(f"{x:.9f}" for x in values) + "\n")
+        if progress is not None:
+            progress(i + 1, config.frames)
+
+    lists = {
+        "rgb.txt": ("color images", "timestamp filename", rgb_lines),
+        "depth.txt": ("depth maps", "timestamp filename", depth_lines),
+        "groundtruth.txt": ("ground truth trajectory", "timestamp tx ty tz qx qy qz qw", gt_lines),
+    }
+    for name, (what, columns, lines) in lists.items():
+        header = _TUM_HEADER.format(what=what, seed=config.seed, columns=columns)
+        (root / name).write_text(header + "".join(lines))
+    (root / "calibration.txt").write_text(" ".join(f"{x:.9f}" for x in config.intrinsics) + "\n")
+
+
+def _imwrite(path: Path, image: np.ndarray) -> None:
+    """Write a PNG, failing loudly (cv2.imwrite only returns False)."""
+    if not cv2.imwrite(str(path), image):
+        raise OSError(f"could not write {path}")
+
+
+def _check_replaceable(out_dir: Path, overwrite: bool) -> None:
+    """Refuse an existing out_dir unless overwriting, and never replace what is not a sequence.
+
+    The second rule keeps a slip like ``bgs synth ~ --overwrite`` from deleting a home directory.
+    """
+    if not (out_dir.exists() or out_dir.is_symlink()):
+        return
+    if not overwrite:
+        raise OutputExistsError(f"{out_dir} already exists; pass --overwrite to replace it")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not (out_dir / "rgb.txt").exists():
+        raise OutputExistsError(
+            f"{out_dir} is not a TUM sequence (no rgb.txt), so --overwrite will not delete it; "
+            "choose another output directory or remove it yourself"
+        )
+
+
+def _replace(tmp: Path, out_dir: Path, overwrite: bool) -> None:
+    """Move the finished tmp directory to out_dir, replacing a previous out_dir if allowed."""
+    if out_dir.exists() or out_dir.is_symlink():
+        _check_replaceable(out_dir, overwrite)  # again: it may have appeared while rendering
+        old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".old", dir=out_dir.parent))
+        os.replace(out_dir, old / "previous")
+        os.replace(tmp, out_dir)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, out_dir)

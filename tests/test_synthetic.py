@@ -1,0 +1,259 @@
+"""Tests of the synthetic TUM-layout sequence generator (converters/synthetic.py)."""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from bgs_batch.errors import InputError, Interrupted, OutputExistsError
+from bgs_batch.geometry import pose_matrix
+from converters.synthetic import SynthConfig, synthesize
+
+SMALL = {"frames": 30, "width": 160, "height": 120, "seed": 3}
+
+
+@pytest.fixture(scope="module")
+def open_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return synthesize(tmp_path_factory.mktemp("open") / "seq", SynthConfig(**SMALL))
+
+
+@pytest.fixture(scope="module")
+def loop_seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return synthesize(tmp_path_factory.mktemp("loop") / "seq", SynthConfig(**SMALL, loop=True))
+
+
+def read_list(path: Path) -> list[list[str]]:
+    """The data lines of a TUM list file, split into fields."""
+    return [line.split() for line in path.read_text().splitlines() if not line.startswith("#")]
+
+
+def poses(seq: Path) -> np.ndarray:
+    """Camera-to-world 4x4 matrices from groundtruth.txt."""
+    gt = np.array(read_list(seq / "groundtruth.txt"), dtype=np.float64)
+    return pose_matrix(gt[:, 1:4], gt[:, 4:8])
+
+
+def depths(seq: Path) -> list[np.ndarray]:
+    """Depth images in metres (0 = invalid), in list order."""
+    return [
+        cv2.imread(str(seq / name), cv2.IMREAD_UNCHANGED) / 5000.0
+        for _, name in read_list(seq / "depth.txt")
+    ]
+
+
+def files(seq: Path) -> dict[str, bytes]:
+    """Every file of a sequence by relative path, for byte-exact comparison."""
+    return {str(p.relative_to(seq)): p.read_bytes() for p in sorted(seq.rglob("*")) if p.is_file()}
+
+
+def sigma(z: np.ndarray) -> np.ndarray:
+    """Kinect v1 depth noise model the generator claims to follow."""
+    return 0.0012 + 0.0019 * (z - 0.4) ** 2
+
+
+def test_tum_layout(open_seq: Path) -> None:
+    assert [p.name for p in open_seq.parent.iterdir()] == ["seq"]  # no temp dir left behind
+    assert sorted(p.name for p in open_seq.iterdir()) == [
+        "calibration.txt",
+        "depth",
+        "depth.txt",
+        "groundtruth.txt",
+        "rgb",
+        "rgb.txt",
+    ]
+    headers = {
+        "rgb.txt": ("# color images", "# timestamp filename"),
+        "depth.txt": ("# depth maps", "# timestamp filename"),
+        "groundtruth.txt": ("# ground truth trajectory", "# timestamp tx ty tz qx qy qz qw"),
+    }
+    for name, (first, third) in headers.items():
+        lines = (open_seq / name).read_text().splitlines()
+        assert (lines[0], lines[2]) == (first, third) and lines[1].startswith("# file:")
+        assert len(lines) == 3 + SMALL["frames"]
+
+    rgb, depth, gt = (read_list(open_seq / n) for n in ("rgb.txt", "depth.txt", "groundtruth.txt"))
+    stamps = np.array([float(s) for s, _ in rgb])
+    np.testing.assert_allclose(np.diff(stamps), 1 / 30, atol=2e-6)
+    np.testing.assert_allclose([float(s) for s, _ in depth], stamps + 0.004, atol=2e-6)
+    assert [row[0] for row in gt] == [s for s, _ in rgb]  # one exact pose per RGB stamp
+    for (stamp, name), (_, depth_name) in zip(rgb, depth, strict=True):
+        assert len(stamp.split(".")[1]) == 6 and name == f"rgb/{stamp}.png"
+        image = cv2.imread(str(open_seq / name), cv2.IMREAD_UNCHANGED)
+        depth_image = cv2.imread(str(open_seq / depth_name), cv2.IMREAD_UNCHANGED)
+        assert image.shape == (120, 160, 3) and image.dtype == np.uint8
+        assert depth_image.shape == (120, 160) and depth_image.dtype == np.uint16
+    calib = [float(x) for x in (open_seq / "calibration.txt").read_text().split()]
+    assert calib == [131.25, 131.25, 79.5, 59.5]
+
+
+def test_deterministic_per_seed(open_seq: Path, tmp_path: Path) -> None:
+    again = synthesize(tmp_path / "again", SynthConfig(**SMALL))
+    assert files(again) == files(open_seq)
+    other = files(synthesize(tmp_path / "other", SynthConfig(**{**SMALL, "seed": 4})))
+    assert other["groundtruth.txt"] != files(open_seq)["groundtruth.txt"]
+    ours = files(open_seq)
+    rgb_names = [n for n in ours if n.startswith("rgb/")]
+    assert all(other[n] != ours[n] for n in rgb_names)
+
+
+def test_poses_are_rigid_and_smooth(open_seq: Path) -> None:
+    gt = np.array(read_list(open_seq / "groundtruth.txt"), dtype=np.float64)
+    np.testing.assert_allclose(np.linalg.norm(gt[:, 4:8], axis=1), 1.0, atol=1e-8)
+    assert all(
+        len(field.split(".")[1]) >= 6
+        for row in read_list(open_seq / "groundtruth.txt")
+        for field in row[1:]
+    )
+    mats = poses(open_seq)
+    rot = mats[:, :3, :3]
+    np.testing.assert_allclose(
+        rot @ rot.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rot.shape), atol=1e-8
+    )
+    np.testing.assert_allclose(np.linalg.det(rot), 1.0, atol=1e-8)
+    # TUM-handheld-like motion: 0.1-0.6 m/s and 5-60 deg/s on average.
+    speed = np.linalg.norm(np.diff(mats[:, :3, 3], axis=0), axis=1).mean() * 30
+    relative = np.einsum("nji,njk->nik", rot[:-1], rot[1:])
+    cos = (np.trace(relative, axis1=1, axis2=2) - 1) / 2
+    turn = np.degrees(np.arccos(np.clip(cos, -1, 1))).mean() * 30
+    assert 0.1 < speed < 0.6 and 5 < turn < 60
+    assert (mats[:, 2, 3] > 0.5).all() and (mats[:, 2, 3] < 2.5).all()  # inside the room
+
+
+def reprojected_agreement(seq: Path, k: int, shift: float = 0.0) -> float:
+    """Share of frame-0 depth pixels that, moved to frame k with GT, match frame k's depth."""
+    fx, fy, cx, cy = (float(x) for x in (seq / "calibration.txt").read_text().split())
+    mats, depth = poses(seq), depths(seq)
+    mats[k, :3, 3] += shift * mats[k, :3, 2]  # optionally move frame k along its optical axis
+    v, u = np.nonzero(depth[0])
+    z = depth[0][v, u]
+    cam0 = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z, np.ones_like(z)])
+    cam_k = np.linalg.inv(mats[k]) @ mats[0] @ cam0
+    uk = np.rint(fx * cam_k[0] / cam_k[2] + cx).astype(int)
+    vk = np.rint(fy * cam_k[1] / cam_k[2] + cy).astype(int)
+    height, width = depth[0].shape
+    inside = (cam_k[2] > 0) & (uk >= 0) & (uk < width) & (vk >= 0) & (vk < height)
+    predicted, observed = cam_k[2][inside], depth[k][vk[inside], uk[inside]]
+    seen = observed > 0
+    assert seen.sum() > 0.3 * depth[0].size  # the views overlap substantially
+    error = np.abs(predicted[seen] - observed[seen])
+    return float(np.mean(error < 4 * np.sqrt(2) * sigma(observed[seen]) + 0.002))
+
+
+def test_ground_truth_matches_rendered_depth(open_seq: Path) -> None:
+    assert reprojected_agreement(open_seq, k=15) > 0.95
+    assert reprojected_agreement(open_seq, k=15, shift=0.1) < 0.2  # the check is sensitive
+
+
+def test_loop_returns_to_start_and_open_path_does_not(open_seq: Path, loop_seq: Path) -> None:
+    loop = poses(loop_seq)
+    assert np.linalg.norm(loop[-1, :3, 3] - loop[0, :3, 3]) < 1e-6
+    np.testing.assert_allclose(loop[-1, :3, :3], loop[0, :3, :3], atol=1e-6)
+    assert np.linalg.norm(loop[len(loop) // 2, :3, 3] - loop[0, :3, 3]) > 0.03  # it did move
+    open_path = poses(open_seq)
+    later = np.linalg.norm(open_path[len(open_path) // 2 :, :3, 3] - open_path[0, :3, 3], axis=1)
+    assert later.min() > 0.1
+
+
+def test_depth_noise_grows_like_kinect(loop_seq: Path) -> None:
+    # The loop's first and last frames share a pose: their difference is pure sensor noise.
+    first, last = depths(loop_seq)[0], depths(loop_seq)[-1]
+    both = (first > 0) & (last > 0)
+    z, diff = first[both], (last - first)[both]
+    assert np.abs(diff).max() > 0  # independent noise draws
+    edges = np.quantile(z, [0.0, 0.33, 0.67, 1.0])
+    measured, expected = [], []
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        d = diff[(z >= lo) & (z < hi)]
+        measured.append(1.4826 * np.median(np.abs(d - np.median(d))))  # robust std
+        expected.append(np.sqrt(2) * sigma((lo + hi) / 2))
+    assert measured == sorted(measured)
+    np.testing.assert_allclose(measured, expected, rtol=0.35)
+
+
+def test_depth_holes_and_range(open_seq: Path) -> None:
+    for depth in depths(open_seq):
+        assert 0.02 < np.mean(depth == 0) < 0.15
+        valid = depth[depth > 0]
+        assert valid.min() >= 0.3 and valid.max() <= 8.0
+        assert np.median(valid) > 0.5 and np.median(valid) < 4.0
+
+
+def test_images_are_richly_textured(open_seq: Path) -> None:
+    """Photometric tracking needs gradients everywhere: few blocks are flat beyond sensor noise."""
+    for _, name in read_list(open_seq / "rgb.txt")[::10]:
+        grey = cv2.cvtColor(cv2.imread(str(open_seq / name)), cv2.COLOR_BGR2GRAY).astype(float)
+        smooth = cv2.GaussianBlur(grey, (0, 0), 1.0)
+        blocks = smooth.reshape(120 // 10, 10, 160 // 10, 10).std(axis=(1, 3))
+        assert np.mean(blocks > 2.0) > 0.8
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"frames": 1},
+        {"width": 8},
+        {"height": 0},
+        {"fps": 0.0},
+        {"seed": -1},
+        {"depth_delay": 0.02},
+        {"hole_fraction": 0.7},
+        {"depth_range": (0.3, 20.0)},
+    ],
+)
+def test_bad_config_is_input_error(change: dict, tmp_path: Path) -> None:
+    with pytest.raises(InputError):
+        synthesize(tmp_path / "seq", SynthConfig(**{**SMALL, **change}))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_existing_output_needs_overwrite(tmp_path: Path) -> None:
+    out = tmp_path / "seq"
+    out.mkdir()
+    (out / "rgb.txt").write_text("# an older sequence\n")
+    (out / "stale.txt").write_text("old")
+    config = SynthConfig(**{**SMALL, "frames": 2})
+    with pytest.raises(OutputExistsError, match="--overwrite") as error:
+        synthesize(out, config)
+    assert str(out) in str(error.value) and (out / "stale.txt").exists()
+    assert synthesize(out, config, overwrite=True) == out
+    assert not (out / "stale.txt").exists() and (out / "groundtruth.txt").exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["seq"]  # no temp or backup dirs left
+
+
+def test_overwrite_never_deletes_a_foreign_directory(tmp_path: Path) -> None:
+    (tmp_path / "precious.txt").write_text("keep me")
+    with pytest.raises(OutputExistsError, match="not a TUM sequence"):
+        synthesize(tmp_path, SynthConfig(**{**SMALL, "frames": 2}), overwrite=True)
+    assert [p.name for p in tmp_path.iterdir()] == ["precious.txt"]
+
+
+def test_interrupted_run_leaves_nothing(tmp_path: Path) -> None:
+    calls = []
+
+    def progress(done: int, total: int) -> None:
+        calls.append((done, total))
+        if done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        synthesize(tmp_path / "seq", SynthConfig(**{**SMALL, "frames": 5}), progress=progress)
+    assert calls == [(1, 5), (2, 5), (3, 5)]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_sigterm_leaves_nothing(tmp_path: Path) -> None:
+    def progress(done: int, total: int) -> None:
+        if done == 2:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    handler = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Interrupted) as error:
+        synthesize(tmp_path / "seq", SynthConfig(**{**SMALL, "frames": 5}), progress=progress)
+    assert error.value.exit_code == 128 + signal.SIGTERM
+    assert list(tmp_path.iterdir()) == []
+    assert signal.getsignal(signal.SIGTERM) is handler  # restored
