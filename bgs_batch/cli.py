@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
 
 import click
@@ -84,10 +85,49 @@ def convert() -> None:
     """
 
 
+def _conversion_options(command: Callable) -> Callable:
+    """The options every `convert` command shares (output, subsampling, robustness, threads)."""
+    for option in reversed((
+        click.option("-o", "--output", type=click.Path(path_type=Path),
+                     help="Frame store to write [default: ./<input name>.h5]."),
+        click.option("--stride", default=1, show_default=True, type=click.IntRange(min=1),
+                     help="Keep every STRIDE-th frame."),
+        click.option("--max-frames", type=click.IntRange(min=1),
+                     help="Stop after this many frames."),
+        click.option("--skip-bad-frames", is_flag=True,
+                     help="Drop undecodable frames (listed in the report and store) instead of "
+                          "failing."),
+        click.option("--overwrite", is_flag=True, help="Replace OUTPUT if it exists."),
+        click.option("--workers", default=2, show_default=True, type=click.IntRange(min=1),
+                     help="Decode/compress threads."),
+    )):  # fmt: skip
+        command = option(command)
+    return command
+
+
+def _convert_plan(ctx: click.Context, source: Path, output: Path | None, options: dict,
+                  plan_fn: Callable, options_type: type) -> None:  # fmt: skip
+    """Plan with ``plan_fn(source, options_type(**options))``, write the store and report."""
+    from bgs_batch.progress import progress_bar
+    from bgs_batch.store import check_output_path
+    from converters.pipeline import write_store
+
+    source = Path(source).resolve()
+    output = output or Path(f"{source.stem if source.is_file() else source.name}.h5")
+    overwrite, skip, workers = (options.pop(k) for k in ("overwrite", "skip_bad_frames", "workers"))
+    check_output_path(output, overwrite)
+    plan = plan_fn(source, options_type(**options))
+    with progress_bar("converting", plan.count, _show_progress(ctx)) as advance:
+        report = write_store(plan.frames, output, plan.meta, overwrite=overwrite,
+                             skip_bad_frames=skip, workers=workers, progress=advance)  # fmt: skip
+    for item in report.skipped:
+        click.echo(f"skipped {item['frame']}: {item['reason']}", err=True)
+    click.echo(f"wrote {report.path} ({report.frames} frames, {len(report.skipped)} skipped, "
+               f"{report.frames / report.seconds:.1f} frames/s)")  # fmt: skip
+
+
 @convert.command("tum")
 @click.argument("folder", type=click.Path(path_type=Path))
-@click.option("-o", "--output", type=click.Path(path_type=Path),
-              help="Frame store to write [default: ./<folder name>.h5].")
 @click.option("--tolerance", default=0.02, show_default=True, type=click.FloatRange(min=0),
               help="Max RGB-depth timestamp difference (s) for an association.")
 @click.option("--intrinsics", nargs=4, type=float, metavar="FX FY CX CY",
@@ -97,14 +137,7 @@ def convert() -> None:
               help="Override the distortion coefficients (OpenCV order).")
 @click.option("--undistort", is_flag=True,
               help="Undistort RGB (bilinear) and depth (nearest) before storing.")
-@click.option("--stride", default=1, show_default=True, type=click.IntRange(min=1),
-              help="Keep every STRIDE-th associated frame.")
-@click.option("--max-frames", type=click.IntRange(min=1), help="Stop after this many frames.")
-@click.option("--skip-bad-frames", is_flag=True,
-              help="Drop unreadable frames (listed in the report and store) instead of failing.")
-@click.option("--overwrite", is_flag=True, help="Replace OUTPUT if it exists.")
-@click.option("--workers", default=2, show_default=True, type=click.IntRange(min=1),
-              help="Decode/compress threads.")
+@_conversion_options
 @click.pass_context
 def convert_tum(ctx: click.Context, folder: Path, output: Path | None, **options) -> None:
     """Convert a TUM RGB-D sequence folder (rgb.txt, depth.txt, groundtruth.txt).
@@ -116,30 +149,70 @@ def convert_tum(ctx: click.Context, folder: Path, output: Path | None, **options
     Example:
       bgs convert tum data/rgbd_dataset_freiburg1_rpy -o fr1_rpy.h5 --max-frames 100
     """
-    from bgs_batch.progress import progress_bar
-    from bgs_batch.store import check_output_path
-    from converters.pipeline import write_store
     from converters.tum import TumOptions, plan_tum
 
-    output = output or Path(f"{Path(folder).resolve().name}.h5")
-    overwrite, skip, workers = (options.pop(k) for k in ("overwrite", "skip_bad_frames", "workers"))
-    check_output_path(output, overwrite)
-    tum_options = TumOptions(
-        tolerance=options["tolerance"],
-        intrinsics=options["intrinsics"] or None,
-        distortion=options["distortion"] or None,
-        undistort=options["undistort"],
-        stride=options["stride"],
-        max_frames=options["max_frames"],
-    )
-    plan = plan_tum(folder, tum_options, skip_bad_frames=skip)
-    with progress_bar("converting", len(plan.frames), _show_progress(ctx)) as advance:
-        report = write_store(plan.frames, output, plan.meta, overwrite=overwrite,
-                             skip_bad_frames=skip, workers=workers, progress=advance)  # fmt: skip
-    for item in report.skipped:
-        click.echo(f"skipped {item['frame']}: {item['reason']}", err=True)
-    click.echo(f"wrote {report.path} ({report.frames} frames, {len(report.skipped)} skipped, "
-               f"{report.frames / report.seconds:.1f} frames/s)")  # fmt: skip
+    options["intrinsics"] = options["intrinsics"] or None
+    options["distortion"] = options["distortion"] or None
+    _convert_plan(ctx, folder, output, options, plan_tum, TumOptions)
+
+
+@convert.command("scannet")
+@click.argument("path", type=click.Path(path_type=Path))
+@_conversion_options
+@click.pass_context
+def convert_scannet(ctx: click.Context, path: Path, output: Path | None, **options) -> None:
+    """Convert a ScanNet scene: an exported folder or the raw .sens file (streamed).
+
+    The folder holds color/*.jpg, depth/*.png (mm), pose/*.txt (camera-to-world) and
+    intrinsic/intrinsic_depth.txt. Colour is resized to the depth resolution (area averaging) and
+    the depth intrinsics are stored; invalid (-inf) poses become NaN and the frames are kept.
+    Timestamps are frame index / 30 Hz, as exports carry none.
+
+    \b
+    Example:
+      bgs convert scannet scans/scene0000_00/scene0000_00.sens -o scene0000_00.h5
+      bgs convert scannet exports/scene0000_00 --stride 5
+    """
+    from converters.scannet import ScanNetOptions, plan_scannet
+
+    _convert_plan(ctx, path, output, options, plan_scannet, ScanNetOptions)
+
+
+@convert.command("bag")
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option("--rgb-topic", help="Colour image topic [default: the only colour topic].")
+@click.option("--depth-topic", help="Depth image topic [default: the only depth topic].")
+@click.option("--info-topic", help="Colour CameraInfo topic [default: the one beside RGB].")
+@click.option("--depth-info-topic",
+              help="Depth CameraInfo topic [default: the one beside depth; none: registered].")
+@click.option("--pose-topic",
+              help="Ground-truth poses: PoseStamped, PoseWithCovarianceStamped, Odometry, "
+                   "TransformStamped or TF (with --pose-frame).")
+@click.option("--pose-frame", help="Child frame to take from a TF --pose-topic.")
+@click.option("--tolerance", default=0.02, show_default=True, type=click.FloatRange(min=0),
+              help="Max RGB-depth header-stamp difference (s) for an association.")
+@click.option("--depth-scale", type=click.FloatRange(min=0, min_open=True),
+              help="Units per metre of 16-bit depth [default: RealSense option, else 1000].")
+@_conversion_options
+@click.pass_context
+def convert_bag(ctx: click.Context, path: Path, output: Path | None, **options) -> None:
+    """Convert a ROS1 .bag, ROS2 .db3/.mcap file or ROS2 bag folder (streamed, two passes).
+
+    Topics are auto-detected (an error lists them when the choice is ambiguous). Images may be
+    raw (rgb8, bgr8, rgba8, bgra8, mono8; 16UC1/mono16 mm, 32FC1 m) or compressed (JPEG, PNG,
+    compressedDepth). RGB and depth are associated by header stamp; depth with its own
+    intrinsics is registered into the colour camera with the extrinsic from /tf_static, /tf or
+    the RealSense tf/0 topics.
+
+    \b
+    Example:
+      bgs convert bag recording.bag -o seq.h5 --tolerance 0.15
+      bgs convert bag rosbag2_run/ --rgb-topic /camera/color/image_raw \\
+          --depth-topic /camera/aligned_depth_to_color/image_raw --pose-topic /vicon/pose
+    """
+    from converters.bag import BagOptions, plan_bag
+
+    _convert_plan(ctx, path, output, options, plan_bag, BagOptions)
 
 
 @main.command()
@@ -216,3 +289,48 @@ def demo(ctx: click.Context, workdir: Path, frames: int, size: tuple[int, int]) 
 
     config = DemoConfig(workdir=workdir, frames=frames, width=size[0], height=size[1])
     run_demo(config, show_progress=_show_progress(ctx))
+
+
+@main.command()
+@click.argument("store", type=click.Path(path_type=Path))
+@click.option("--job-dir", required=True, type=click.Path(path_type=Path),
+              help="Folder for the job's outputs (created).")
+@click.option("--preset", default="cpu", show_default=True,
+              help="Settings preset: 'cpu' (tuned for 2 cores) or 'paper' (published settings).")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Override one setting, e.g. --set tracking.iterations=100 (repeatable).")
+@click.option("--max-frames", type=click.IntRange(min=1), help="Process only the first N frames.")
+@click.pass_context
+def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: tuple[str, ...],
+        max_frames: int | None) -> None:  # fmt: skip
+    """Run uncertainty-aware Gaussian-splatting SLAM on a frame store.
+
+    Writes config.json, log.jsonl (one event per frame: pose, keyframe decision with both
+    surprise scores, losses), trajectory.txt (TUM format), submaps/ and summary.json into
+    JOB_DIR. Ground truth in the store is only used afterwards, for the ATE in the summary.
+
+    \b
+    Example:
+      bgs run fr1_rpy.h5 --job-dir jobs/fr1_rpy --preset cpu --set keyframes.mode=every
+    """
+    from bgs_batch.config import load_config
+    from bgs_batch.progress import progress_bar
+    from bgs_batch.store import FrameStore
+    from jobs.run import run_job
+
+    cfg = load_config(preset, list(overrides))
+    with FrameStore(store) as opened:
+        total = len(opened) if max_frames is None else min(max_frames, len(opened))
+    keyframes = []
+
+    def on_frame(event: dict) -> None:
+        keyframes.append(event["keyframe"])
+        loss = event.get("track_loss")
+        status = f"{sum(keyframes)} keyframes" + (f", loss {loss:.3g}" if loss else "")
+        advance(1, status)
+
+    with progress_bar("SLAM", total, _show_progress(ctx)) as advance:
+        summary = run_job(store, job_dir, cfg, max_frames=max_frames, on_frame=on_frame)
+    ate = "n/a (no GT)" if summary.ate_rmse_m is None else f"{summary.ate_rmse_m * 100:.2f} cm"
+    click.echo(f"{summary.frames} frames, {summary.keyframes} keyframes, {summary.fps:.2f} fps, "
+               f"ATE RMSE {ate}; outputs in {job_dir}")  # fmt: skip

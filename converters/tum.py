@@ -211,9 +211,17 @@ class TumPlan:
     frames: list[SourceFrame]
     meta: StoreMeta
 
+    @property
+    def count(self) -> int:
+        return len(self.frames)
 
-def plan_tum(folder: Path, options: TumOptions, *, skip_bad_frames: bool = False) -> TumPlan:
-    """Read the list files, associate, interpolate GT and check files, without decoding images."""
+
+def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
+    """Read the list files, associate and interpolate GT, without decoding images.
+
+    Missing or unreadable images surface when their frame is decoded (naming the file), so
+    ``--skip-bad-frames`` can drop them.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder} is not a folder; pass a TUM RGB-D sequence folder")
@@ -236,13 +244,6 @@ def plan_tum(folder: Path, options: TumOptions, *, skip_bad_frames: bool = False
         poses = interpolate_poses(*read_groundtruth(gt_file), stamps, options.gt_max_gap)
 
     files = [(folder / rgb_names[i], folder / depth_names[j]) for i, j in pairs.tolist()]
-    missing = [str(p) for pair in files for p in pair if not p.is_file()]
-    if missing and not skip_bad_frames:
-        more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
-        raise InputError(
-            f"{folder}: referenced image(s) missing: {', '.join(missing[:3])}{more}; restore "
-            "them or pass --skip-bad-frames to drop those frames"
-        )
 
     camera, camera_provenance = detect_camera(folder, options)
     undistort = None
