@@ -1,0 +1,107 @@
+"""Differentiable EWA projection of 3D Gaussians through a pinhole camera.
+
+Backends: ``"numba"`` (fused analytic forward/backward, the pose gradient reduced in the
+kernel: no autograd graph over the Gaussians) and ``"torch"`` (autograd oracle in
+:mod:`.reference`). The pose enters as a world-to-camera 4×4 ``viewmat``; compose it with
+:func:`.camera.se3_exp` for se(3) tangent gradients.
+"""
+
+from typing import NamedTuple
+
+import numba
+import numpy as np
+import torch
+
+from . import _numba_project as npj
+from .camera import Camera
+from .rasterize import BACKENDS, DEFAULT_BACKEND, check_float_inputs, to_numpy
+from .reference import project_ref
+
+
+class Projected(NamedTuple):
+    """The M visible Gaussians in screen space (inputs of :func:`.rasterize.rasterize`)."""
+
+    means2d: torch.Tensor
+    """[M,2] pixel positions ``(fx·x/z + cx, fy·y/z + cy)``."""
+    conics: torch.Tensor
+    """[M,3] inverse low-passed screen covariance ``(a, b, c)``."""
+    depths: torch.Tensor
+    """[M] camera-space depths ``z``."""
+    ids: torch.Tensor
+    """[M] int64 indices of the visible Gaussians in the input arrays (ascending)."""
+
+
+def project(
+    means: torch.Tensor,
+    log_scales: torch.Tensor,
+    quats: torch.Tensor,
+    opacity_logits: torch.Tensor,
+    viewmat: torch.Tensor,
+    camera: Camera,
+    *,
+    backend: str = DEFAULT_BACKEND,
+) -> Projected:
+    """Project N Gaussians and keep the visible ones (near plane, guard band, screen bounds).
+
+    Args:
+        means: [N,3] world positions μ_i.
+        log_scales: [N,3] log standard deviations along the local axes.
+        quats: [N,4] rotations as (w, x, y, z) quaternions (any norm).
+        opacity_logits: [N] opacity logits; only used for the opacity-aware bounds.
+        viewmat: [4,4] world-to-camera transform; gradients flow to its top 3×4 block.
+        camera: intrinsics and image size.
+    """
+    if backend == "torch":
+        means2d, conics, depths, visible = project_ref(
+            means, log_scales, quats, opacity_logits, viewmat, camera
+        )
+        ids = visible.nonzero().squeeze(-1)
+        return Projected(means2d[ids], conics[ids], depths[ids], ids)
+    if backend != "numba":
+        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
+    check_float_inputs(means, log_scales, quats, opacity_logits, viewmat)
+    return Projected(
+        *_ProjectNumba.apply(means, log_scales, quats, opacity_logits, viewmat, camera)
+    )
+
+
+class _ProjectNumba(torch.autograd.Function):
+    """Autograd wrapper of :mod:`._numba_project`."""
+
+    @staticmethod
+    def forward(ctx, means, log_scales, quats, opacity_logits, viewmat, camera):
+        n = means.shape[0]
+        arrays = tuple(to_numpy(t) for t in (means, log_scales, quats, viewmat))
+        params = npj.project_params(camera, arrays[0].dtype)
+        dtype = arrays[0].dtype
+        means2d, conics = np.empty((n, 2), dtype), np.empty((n, 3), dtype)
+        depths, visible = np.empty(n, dtype), np.empty(n, np.bool_)
+        npj.project_fwd(
+            arrays[0], arrays[1], arrays[2], to_numpy(opacity_logits), arrays[3], params,
+            camera.width, camera.height, numba.get_num_threads(),
+            means2d, conics, depths, visible,
+        )  # fmt: skip
+        ids = np.flatnonzero(visible)
+        out = [torch.from_numpy(a[ids]) for a in (means2d, conics, depths)]
+        ctx.arrays, ctx.params, ctx.ids, ctx.conics = arrays, params, ids, out[1].numpy()
+        ids = torch.from_numpy(ids)
+        ctx.mark_non_differentiable(ids)
+        return *out, ids
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, _g_ids):
+        means, log_scales, quats, viewmat = ctx.arrays
+        want = any(ctx.needs_input_grad[:3])
+        rows = means.shape[0] if want else 0
+        out = [np.zeros((rows, a.shape[1]), a.dtype) for a in (means, log_scales, quats)]
+        pose = np.empty(npj.N_POSE, means.dtype)
+        npj.project_bwd(
+            means, log_scales, quats, viewmat, ctx.params, ctx.ids, ctx.conics,
+            *map(to_numpy, (g_means2d, g_conics, g_depths)), want, numba.get_num_threads(),
+            *out, pose,
+        )  # fmt: skip
+        g_view = torch.zeros(4, 4, dtype=g_means2d.dtype)
+        g_view[:3, :3] = torch.from_numpy(pose[:9].reshape(3, 3))
+        g_view[:3, 3] = torch.from_numpy(pose[9:])
+        g_means, g_scales, g_quats = (torch.from_numpy(a) if want else None for a in out)
+        return g_means, g_scales, g_quats, None, g_view, None

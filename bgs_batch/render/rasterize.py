@@ -1,0 +1,159 @@
+"""Differentiable rasterization of projected Gaussians with opacity-induced variances.
+
+One operator, :func:`rasterize`, with two backends: ``"numba"`` (default; tile based,
+deterministic, float32 or float64) and ``"torch"`` (the dense float64 oracle of
+:mod:`.reference`). Both implement DESIGN.md §4 / paper Eq. 3, 12, 13.
+"""
+
+from typing import NamedTuple
+
+import numba
+import numpy as np
+import torch
+
+from . import _numba_raster as nr
+from .constants import TILE_SIZE
+from .reference import rasterize_ref
+
+BACKENDS = ("numba", "torch")
+DEFAULT_BACKEND = "numba"
+DEPTH_NORM_EPS = 1e-8
+"""Alpha floor of :meth:`RasterOutput.normalized_depth` (keeps empty pixels at depth 0)."""
+
+
+class RasterOutput(NamedTuple):
+    """Per-pixel renders, channels last: [H,W,3] colour, [H,W,1] for the rest."""
+
+    color: torch.Tensor
+    """``C = Σ c_i α_i T_i``."""
+    depth: torch.Tensor
+    """Unnormalised ``D = Σ d_i α_i T_i`` (camera z)."""
+    alpha: torch.Tensor
+    """``A = Σ α_i T_i = 1 − T_final``."""
+    var_color: torch.Tensor
+    """``V_C = Σ (c_i − C)² T_i² v_i`` per channel (paper Eq. 3, 12), no floors."""
+    var_depth: torch.Tensor
+    """``V_D = Σ (d_i − D)² T_i² v_i`` (paper Eq. 13), no floors."""
+
+    def normalized_depth(self) -> torch.Tensor:
+        """Alpha-normalised depth ``D / A`` (0 where nothing was rendered)."""
+        return self.depth / self.alpha.clamp_min(DEPTH_NORM_EPS)
+
+
+def check_float_inputs(*tensors: torch.Tensor) -> torch.dtype:
+    """The common dtype of CPU float32/float64 tensors; raises ``ValueError`` otherwise."""
+    dtype = tensors[0].dtype
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"expected float32 or float64 tensors, got {dtype}")
+    for t in tensors:
+        if t.dtype != dtype:
+            raise ValueError(f"mixed dtypes {dtype} and {t.dtype}: cast all inputs to one dtype")
+        if t.device.type != "cpu":
+            raise ValueError(f"the numba backend runs on CPU tensors, got device {t.device}")
+    return dtype
+
+
+def rasterize(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    depths: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    variances: torch.Tensor,
+    width: int,
+    height: int,
+    *,
+    full_grad: bool = True,
+    backend: str = DEFAULT_BACKEND,
+) -> RasterOutput:
+    """Composite M projected Gaussians front to back into a ``height`` × ``width`` image.
+
+    Args:
+        means2d: [M,2] pixel positions (OpenCV convention, see :mod:`.constants`).
+        conics: [M,3] inverse screen covariances ``(a, b, c)``, positive definite.
+        depths: [M] camera-space depths ``d_i`` (sort key and depth feature).
+        opacities: [M] activated opacities ``o_i``.
+        colors: [M,3] RGB colours ``c_i``.
+        variances: [M] opacity variances ``v_i = softplus(r_i)`` (DESIGN.md §4).
+        full_grad: differentiate ``T_i²`` in the variances too; ``False`` is the authors'
+            gradient (``T_i²`` constant, ``C`` and ``D`` still differentiated).
+        backend: ``"numba"`` or ``"torch"``.
+    """
+    args = (means2d, conics, depths, opacities, colors, variances)
+    if backend == "torch":
+        return RasterOutput(*rasterize_ref(*args, width, height, full_grad))
+    if backend != "numba":
+        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
+    check_float_inputs(*args)
+    return RasterOutput(*_RasterizeNumba.apply(*args, width, height, full_grad))
+
+
+def to_numpy(t: torch.Tensor) -> np.ndarray:
+    """A contiguous numpy view (no copy when already contiguous) of a detached CPU tensor."""
+    return t.detach().contiguous().numpy()
+
+
+class _RasterizeNumba(torch.autograd.Function):
+    """Autograd wrapper of the numba tile kernels (:mod:`._numba_raster`)."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, depths, opacities, colors, variances, width, height, full):
+        dtype = means2d.dtype
+        mean_np, conic_np, opac_np, var_np = map(to_numpy, (means2d, conics, opacities, variances))
+        a, b, c = conic_np.T
+        if not (np.all(a > 0) and np.all(a * c > b * b)):
+            raise ValueError("conics must be positive definite (a > 0, a·c > b²)")
+        feats = to_numpy(torch.cat([colors.detach(), depths.detach().unsqueeze(-1)], -1))
+        tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+        n_tiles = tiles_x * ((height + TILE_SIZE - 1) // TILE_SIZE)
+        rects = nr.compute_rects(mean_np, conic_np, opac_np, width, height)
+        order = np.argsort(to_numpy(depths), kind="stable")
+        tile_start, isect_gauss, isect_slot, gauss_start = nr.bin_tiles(
+            rects, order, tiles_x, n_tiles
+        )
+        xs, ys = (np.arange(n, dtype=feats.dtype) for n in (width, height))
+        consts = nr.raster_consts(feats.dtype)
+        out_feat = torch.empty(height, width, nr.N_FEAT, dtype=dtype)
+        out_var = torch.empty(height, width, nr.N_FEAT, dtype=dtype)
+        out_dvdf = torch.empty(height, width, nr.N_FEAT, dtype=dtype)
+        out_trans = torch.empty(height, width, dtype=dtype)
+        out_last = torch.empty(height, width, dtype=torch.int64)
+        nr.raster_fwd(
+            mean_np, conic_np, opac_np, feats, var_np, rects, tile_start, isect_gauss,
+            xs, ys, consts, numba.get_num_threads(),
+            *(t.numpy() for t in (out_feat, out_trans, out_var, out_dvdf, out_last)),
+        )  # fmt: skip
+        ctx.full_grad = full
+        ctx.kernel_args = (
+            mean_np, conic_np, opac_np, feats, var_np, rects, tile_start, isect_gauss, xs, ys,
+            consts, numba.get_num_threads(),
+        )  # fmt: skip
+        ctx.reduce_args = (isect_slot, gauss_start)
+        ctx.saved = (out_feat.numpy(), out_trans.numpy(), out_dvdf.numpy(), out_last.numpy())
+        alpha = (1 - out_trans).unsqueeze(-1)
+        return out_feat[..., :3], out_feat[..., 3:], alpha, out_var[..., :3], out_var[..., 3:]
+
+    @staticmethod
+    def backward(ctx, g_color, g_depth, g_alpha, g_var_color, g_var_depth):
+        feats = ctx.kernel_args[3]
+        grad_feat = to_numpy(torch.cat([g_color, g_depth], -1))
+        grad_var = to_numpy(torch.cat([g_var_color, g_var_depth], -1))
+        slots = np.empty((ctx.kernel_args[7].shape[0], nr.N_SLOT), feats.dtype)
+        nr.raster_bwd(
+            *ctx.kernel_args, ctx.full_grad, *ctx.saved, grad_feat, to_numpy(g_alpha[..., 0]),
+            grad_var, slots,
+        )  # fmt: skip
+        grads = np.empty((feats.shape[0], nr.N_SLOT), feats.dtype)
+        nr.reduce_slots(slots, *ctx.reduce_args, grads)
+        g = torch.from_numpy(grads)
+        return (
+            g[:, nr.S_MEAN : nr.S_MEAN + 2],
+            g[:, nr.S_CONIC : nr.S_CONIC + 3],
+            g[:, nr.S_FEAT + 3],
+            g[:, nr.S_OPACITY],
+            g[:, nr.S_FEAT : nr.S_FEAT + 3],
+            g[:, nr.S_VAR],
+            None,
+            None,
+            None,
+        )
