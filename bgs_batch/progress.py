@@ -32,10 +32,10 @@ class _RateColumn(ProgressColumn):
 @contextmanager
 def progress_bar(
     description: str, total: int | None, enabled: bool = True
-) -> Iterator[Callable[[int], None]]:
-    """Yield an ``advance(n)`` callable that moves a bar showing count, rate and time left."""
+) -> Iterator[Callable[..., None]]:
+    """Yield ``advance(n, status="")``: moves a bar showing count, rate, time left and status."""
     if not enabled:
-        yield lambda _n: None
+        yield lambda _n, status="": None
         return
     columns = (
         TextColumn("[bold]{task.description}"),
@@ -44,7 +44,12 @@ def progress_bar(
         _RateColumn(),
         TimeElapsedColumn(),
         TimeRemainingColumn(),
+        TextColumn("{task.fields[status]}"),
     )
     with Progress(*columns, console=stderr, transient=False) as progress:
-        task = progress.add_task(description, total=total)
-        yield lambda n: progress.advance(task, n)
+        task = progress.add_task(description, total=total, status="")
+
+        def advance(n: int, status: str = "") -> None:
+            progress.update(task, advance=n, status=status)
+
+        yield advance

@@ -1,0 +1,129 @@
+"""SLAM accuracy and speed on the real TUM fr1/rpy excerpt, side by side with Open3D's dense SLAM.
+
+Usage: .venv/bin/python bench/slam_tum.py [--tum DIR] [--frames N] [--paper-frames 30]
+
+Rows, all from one run: Open3D's frame-to-model TSDF SLAM (voxel 1 cm, the classical CPU
+baseline); bgs `cpu` preset (surprise keyframes); bgs `cpu` mapping every frame; bgs `paper`
+preset on the first frames. Targets (issue P3): ATE ≤ 2.5 cm, ≥ 0.5 fps, keyframes ≤ 35 %
+with ATE ≤ 1.15× every-frame, peak RSS ≤ 4 GiB. Prints a table and one SUMMARY line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import open3d.core as o3c
+
+from bgs_batch.config import load_config
+from bgs_batch.metrics import ate
+from bgs_batch.store import FrameStore
+from converters.pipeline import write_store
+from converters.tum import TumOptions, plan_tum
+from jobs.run import run_job
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DEFAULT_TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_rpy"
+# Open3D dense SLAM settings (its t_reconstruction_system defaults, voxel 1 cm)
+O3D_VOXEL = 0.01
+O3D_BLOCK_RESOLUTION = 16
+O3D_BLOCK_COUNT = 40_000
+O3D_DEPTH_MAX = 3.0
+O3D_DEPTH_MIN = 0.1
+O3D_DEPTH_DIFF = 0.07
+O3D_TRUNC_MULTIPLIER = 8.0
+TARGET_ATE_M = 0.025
+TARGET_FPS = 0.5
+TARGET_KEYFRAME_SHARE = 0.35
+TARGET_EVERY_RATIO = 1.15
+TARGET_RSS_GB = 4.0
+
+
+def open3d_dense_slam(store: FrameStore, frames: int) -> tuple[np.ndarray, float]:
+    """Camera-to-world poses and wall time of Open3D's frame-to-model TSDF SLAM."""
+    device = o3c.Device("CPU:0")
+    intrinsics = o3c.Tensor(store.intrinsics, o3c.float64)
+    pose = o3c.Tensor(np.eye(4), o3c.float64)
+    model = o3d.t.pipelines.slam.Model(O3D_VOXEL, O3D_BLOCK_RESOLUTION, O3D_BLOCK_COUNT, pose,
+                                       device)  # fmt: skip
+    current = o3d.t.pipelines.slam.Frame(store.height, store.width, intrinsics, device)
+    raycast = o3d.t.pipelines.slam.Frame(store.height, store.width, intrinsics, device)
+    scale = store.depth_scale
+    poses = []
+    start = time.perf_counter()
+    for i in range(frames):
+        current.set_data_from_image("depth", o3d.t.geometry.Image(store.read_depth_raw(i)))
+        current.set_data_from_image("color", o3d.t.geometry.Image(store.read_rgb(i)))
+        if i > 0:
+            result = model.track_frame_to_model(current, raycast, scale, O3D_DEPTH_MAX,
+                                                O3D_DEPTH_DIFF)  # fmt: skip
+            pose = pose @ result.transformation
+        poses.append(pose.cpu().numpy())
+        model.update_frame_pose(i, pose)
+        model.integrate(current, scale, O3D_DEPTH_MAX, O3D_TRUNC_MULTIPLIER)
+        model.synthesize_model_frame(raycast, scale, O3D_DEPTH_MIN, O3D_DEPTH_MAX,
+                                     O3D_TRUNC_MULTIPLIER, False)  # fmt: skip
+    return np.stack(poses), time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tum", type=Path, default=DEFAULT_TUM)
+    parser.add_argument("--frames", type=int, default=240)
+    parser.add_argument("--paper-frames", type=int, default=30)
+    args = parser.parse_args()
+    if not (args.tum / "rgb.txt").is_file():
+        sys.exit(f"no TUM folder at {args.tum}; pass --tum DIR")
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        plan = plan_tum(args.tum, TumOptions(max_frames=args.frames))
+        store_path = write_store(plan.frames, Path(tmp) / "seq.h5", plan.meta).path
+        with FrameStore(store_path) as store:
+            n = len(store)
+            gt = store.poses_gt[:, :3, 3]
+            poses, seconds = open3d_dense_slam(store, n)
+        o3d_ate = ate(poses[:, :3, 3], gt)["rmse"]
+        o3d_fps = n / seconds
+        rows.append(("Open3D dense SLAM (TSDF 1 cm)", n, o3d_ate, o3d_fps, None))
+
+        runs = {}
+        for name, preset, sets, frames in (
+            ("bgs cpu", "cpu", [], n),
+            ("bgs cpu, map every frame", "cpu", ["keyframes.mode=every"], n),
+            ("bgs paper", "paper", [], min(args.paper_frames, n)),
+        ):
+            summary = run_job(store_path, Path(tmp) / name.replace(" ", "_"),
+                              load_config(preset, sets), max_frames=frames)  # fmt: skip
+            runs[name] = summary
+            rows.append((name, frames, summary.ate_rmse_m, summary.fps, summary.keyframes))
+    rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+    print(f"bench/slam_tum.py: {args.tum.name}, {n} frames")
+    print(f"  {'system':<30} {'frames':>6} {'ATE cm':>8} {'fps':>7} {'s/frame':>8} "
+          f"{'keyframes':>10} {'fps / Open3D':>12}")  # fmt: skip
+    for name, frames, err, fps, kf in rows:
+        kf_text = "-" if kf is None else f"{kf} ({kf / frames:.0%})"
+        print(f"  {name:<30} {frames:>6} {err * 100:>8.2f} {fps:>7.2f} {1 / fps:>8.2f} "
+              f"{kf_text:>10} {fps / o3d_fps:>12.2f}")  # fmt: skip
+    cpu, every = runs["bgs cpu"], runs["bgs cpu, map every frame"]
+    share = cpu.keyframes / cpu.frames
+    ratio = cpu.ate_rmse_m / every.ate_rmse_m
+    print(f"  keyframe share {share:.0%} (target <= {TARGET_KEYFRAME_SHARE:.0%}); ATE vs every "
+          f"frame {ratio:.2f}x (target <= {TARGET_EVERY_RATIO}); peak RSS {rss_gb:.2f} GiB")
+    ok = (cpu.ate_rmse_m <= TARGET_ATE_M and cpu.fps >= TARGET_FPS
+          and share <= TARGET_KEYFRAME_SHARE and ratio <= TARGET_EVERY_RATIO
+          and rss_gb <= TARGET_RSS_GB)  # fmt: skip
+    print(f"SUMMARY cpu preset ATE {cpu.ate_rmse_m * 100:.2f} cm at {cpu.fps:.2f} fps "
+          f"({cpu.fps / o3d_fps:.2f}x Open3D, whose ATE is {o3d_ate * 100:.2f} cm); "
+          f"keyframes {share:.0%}; {'all targets met' if ok else 'TARGET MISSED'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,70 @@
+"""A frame prepared for SLAM: tensors at the working resolutions, with their cameras.
+
+Downsampling averages blocks (colour) and the valid readings of a block (depth), so a pixel of a
+coarse level covers exactly its block; the intrinsics follow (`Camera.scaled`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from bgs_batch.render import Camera
+
+
+@dataclass(frozen=True)
+class Level:
+    """One resolution of a frame: colour [H,W,3] in [0,1], depth [H,W,1] in metres (0 invalid)."""
+
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    camera: Camera
+
+
+def crop_and_clip(rgb: np.ndarray, depth: np.ndarray, crop: int, max_depth: float
+                  ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Remove `crop` pixels at each border and invalidate depth beyond `max_depth`."""
+    if crop:
+        rgb, depth = rgb[crop:-crop, crop:-crop], depth[crop:-crop, crop:-crop]
+    depth = np.where(depth <= max_depth, depth, 0.0).astype(np.float32)
+    return np.ascontiguousarray(rgb), depth
+
+
+def camera_for(intrinsics: np.ndarray, width: int, height: int, crop: int = 0) -> Camera:
+    """The pinhole camera of a (cropped) image."""
+    return Camera(fx=float(intrinsics[0, 0]), fy=float(intrinsics[1, 1]),
+                  cx=float(intrinsics[0, 2]) - crop, cy=float(intrinsics[1, 2]) - crop,
+                  width=width, height=height)  # fmt: skip
+
+
+def downsample(level: Level, factor: int) -> Level:
+    """Block-average `level` by an integer factor (the remainder rows/columns are dropped)."""
+    if factor == 1:
+        return level
+    rgb = block_mean(level.rgb, factor)
+    valid = (level.depth > 0).to(level.depth.dtype)
+    count = block_mean(valid, factor)
+    depth = torch.where(count > 0, block_mean(level.depth, factor) / count.clamp_min(1e-12), 0.0)
+    h, w = rgb.shape[:2]
+    camera = level.camera.scaled(1.0 / factor)
+    camera = Camera(camera.fx, camera.fy, camera.cx, camera.cy, w, h)
+    return Level(rgb.contiguous(), depth.contiguous(), camera)
+
+
+def to_level(rgb: np.ndarray, depth: np.ndarray, camera: Camera) -> Level:
+    """Tensors of a frame: uint8 RGB → float32 in [0,1]; depth → [H,W,1]."""
+    return Level(
+        torch.from_numpy(rgb).float() / 255.0,
+        torch.from_numpy(depth)[..., None].float(),
+        camera,
+    )
+
+
+def block_mean(image: torch.Tensor, factor: int) -> torch.Tensor:
+    """Average of each `factor`×`factor` block of an [H,W,C] image (remainder dropped)."""
+    if factor == 1:
+        return image
+    h, w, c = image.shape[0] // factor, image.shape[1] // factor, image.shape[2]
+    return image[: h * factor, : w * factor].reshape(h, factor, w, factor, c).mean((1, 3))

@@ -1,0 +1,166 @@
+"""The SLAM system: per frame, track → (maybe) start a submap → select keyframe → map.
+
+`Slam.process` consumes frames in order and returns one log event per frame. All state lives in
+this object (poses, the active submap and its keyframes, the sensor network and its optimiser,
+the keyframe selector, the random generator), so a job can checkpoint and resume it. Finished
+submaps are frozen and written to disk, so memory stays bounded. Ground truth is never read.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bgs_batch.config import Config, SubmapConfig
+from bgs_batch.frames import camera_for, crop_and_clip, downsample, to_level
+from bgs_batch.gaussian_map import GaussianMap
+from bgs_batch.keyframes import KeyframeSelector
+from bgs_batch.mapping import Keyframe, Mapper
+from bgs_batch.sensor_noise import SensorNoiseNet
+from bgs_batch.store import Frame
+from bgs_batch.tracking import Tracker, constant_velocity
+
+
+def exceeds_motion(first_c2w: np.ndarray, c2w: np.ndarray, cfg: SubmapConfig) -> bool:
+    """True when the camera moved more than the thresholds from the submap's first frame.
+
+    LoopSplat tests each Euler angle against 50°; we test the rotation angle itself, which does
+    not depend on the axis order and is never smaller than any single Euler angle's share.
+    """
+    rel = np.linalg.inv(first_c2w) @ c2w
+    angle = np.degrees(np.arccos(np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1.0, 1.0)))
+    return bool(np.linalg.norm(rel[:3, 3]) > cfg.max_translation or angle > cfg.max_rotation_deg)
+
+
+@dataclass
+class SubmapRecord:
+    """A finished, frozen submap on disk."""
+
+    index: int
+    path: str
+    first_frame: int
+    last_frame: int
+    keyframes: list[int]
+    gaussians: int
+
+
+@dataclass
+class Timings:
+    """Seconds spent per stage, summed over the run."""
+
+    tracking: float = 0.0
+    mapping: float = 0.0
+    sensor: float = 0.0
+    submaps: float = 0.0
+
+    def add(self, stage: str, seconds: float) -> None:
+        setattr(self, stage, getattr(self, stage) + seconds)
+
+
+@dataclass
+class Slam:
+    """An uncertainty-aware Gaussian-splatting SLAM run over one sequence."""
+
+    cfg: Config
+    intrinsics: np.ndarray
+    submap_dir: Path
+    poses: list[np.ndarray] = field(default_factory=list)
+    submaps: list[SubmapRecord] = field(default_factory=list)
+    keyframe_frames: list[int] = field(default_factory=list)
+    mapping_calls: int = 0
+    timings: Timings = field(default_factory=Timings)
+
+    def __post_init__(self) -> None:
+        torch.manual_seed(self.cfg.seed)
+        self.rng = np.random.default_rng(self.cfg.seed)
+        self.sensor = SensorNoiseNet(self.cfg.uncertainty.sensor_hidden,
+                                     self.cfg.uncertainty.sensor_min)  # fmt: skip
+        self.sensor_opt = torch.optim.Adam(self.sensor.parameters(),
+                                           lr=self.cfg.uncertainty.sensor_lr)  # fmt: skip
+        self.tracker = Tracker(self.cfg)
+        self.mapper = Mapper(self.cfg, self.sensor, self.sensor_opt)
+        self.selector = KeyframeSelector(self.cfg.keyframes)
+        self.gmap = GaussianMap()
+        self.active_keyframes: list[Keyframe] = []
+        self.submap_first_frame = 0
+
+    def process(self, frame: Frame) -> dict[str, Any]:
+        """Track, select and map one frame; return its log event."""
+        cfg = self.cfg
+        rgb, depth = crop_and_clip(frame.rgb, frame.depth, cfg.crop_edge, cfg.max_depth)
+        camera = camera_for(self.intrinsics, rgb.shape[1], rgb.shape[0], cfg.crop_edge)
+        full = to_level(rgb, depth, camera)
+        level = downsample(full, cfg.mapping.downscale)
+        event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
+
+        start = time.perf_counter()
+        with torch.no_grad():
+            sensor_c, sensor_d = self.sensor(level.rgb, level.depth)
+        self.timings.add("sensor", time.perf_counter() - start)
+
+        score_c = score_d = None
+        if not self.poses:
+            c2w = np.eye(4)  # the first camera defines the world frame
+        else:
+            start = time.perf_counter()
+            prev2 = torch.from_numpy(self.poses[-2]) if len(self.poses) > 1 else None
+            init = constant_velocity(torch.from_numpy(self.poses[-1]), prev2)
+            result = self.tracker.track(self.gmap, full, sensor_c, sensor_d,
+                                        torch.linalg.inv(init))  # fmt: skip
+            c2w = torch.linalg.inv(result.w2c).numpy()
+            score_c, score_d = result.score_color, result.score_depth
+            event.update(track_loss=result.loss, track_iterations=result.iterations)
+            self.timings.add("tracking", time.perf_counter() - start)
+        self.poses.append(c2w)
+
+        first_of_submap = not self.active_keyframes
+        if not first_of_submap and self._should_switch(frame.index, c2w):
+            start = time.perf_counter()
+            self._finish_submap(last_frame=frame.index - 1)
+            first_of_submap = True
+            self.timings.add("submaps", time.perf_counter() - start)
+
+        decision = self.selector.decide(frame.index, score_c, score_d, first_of_submap)
+        event.update(decision.as_dict())
+        if decision.keyframe:
+            start = time.perf_counter()
+            self.active_keyframes.append(Keyframe(frame.index, level, c2w))
+            if first_of_submap:
+                self.submap_first_frame = frame.index
+            stats = self.mapper.map(self.gmap, self.active_keyframes, first_of_submap, self.rng)
+            self.keyframe_frames.append(frame.index)
+            self.mapping_calls += 1
+            event.update(map_added=stats.added, map_pruned=stats.pruned, map_loss=stats.loss)
+            self.timings.add("mapping", time.perf_counter() - start)
+        event.update(submap=len(self.submaps), gaussians=len(self.gmap),
+                     pose=[float(x) for x in c2w[:3].ravel()])  # fmt: skip
+        return event
+
+    def _should_switch(self, index: int, c2w: np.ndarray) -> bool:
+        s = self.cfg.submaps
+        if s.mode == "interval":
+            return index - self.submap_first_frame >= s.every
+        return exceeds_motion(self.poses[self.submap_first_frame], c2w, s)
+
+    def _finish_submap(self, last_frame: int) -> None:
+        """Freeze the active submap to disk and start an empty one."""
+        index = len(self.submaps)
+        path = self.submap_dir / f"{index:06d}.pt"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        keyframes = [k.frame for k in self.active_keyframes]
+        torch.save({"params": self.gmap.state_dict(), "keyframes": torch.tensor(keyframes),
+                    "first_frame": self.submap_first_frame}, path)  # fmt: skip
+        self.submaps.append(SubmapRecord(index, str(path), self.submap_first_frame,
+                                         last_frame, keyframes, len(self.gmap)))  # fmt: skip
+        self.gmap = GaussianMap()
+        self.active_keyframes = []
+
+    def finish(self) -> None:
+        """Write the last submap too (LoopSplat drops it; its frames deserve a map)."""
+        if self.active_keyframes:
+            self._finish_submap(last_frame=len(self.poses) - 1)

@@ -1,0 +1,144 @@
+"""Camera tracking against the active submap (paper §III-B, Eq. 15-17; DESIGN.md §4).
+
+The pose is a left perturbation of the initial world-to-camera matrix, ``w2c = exp(ξ) · w2c₀``
+with ξ = (ρ, φ), optimised by Adam (amsgrad, LoopSplat's rates) on the uncertainty-normalised
+L1 loss. The map, and the sensor network's variance (computed once per frame), are fixed. CPU
+levers: a coarse-to-fine image pyramid and early stopping once the loss stops improving. The
+lowest-loss pose of the finest level is kept, with its predictive-surprise scores (Eq. 9).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from bgs_batch.config import Config
+from bgs_batch.frames import Level, block_mean, downsample
+from bgs_batch.gaussian_map import GaussianMap
+from bgs_batch.losses import predictive_variance, surprise_scores, tracking_loss
+from bgs_batch.render import Gaussians, RasterOutput, render, se3_exp
+
+Variances = tuple[torch.Tensor, torch.Tensor]  # sensor colour [H,W,1], sensor depth [H,W,1]
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """The tracked pose and what was measured at it."""
+
+    w2c: torch.Tensor  # (4, 4) float64
+    loss: float  # at the best pose, finest level
+    iterations: int  # over all levels
+    score_color: float
+    score_depth: float
+
+
+def constant_velocity(c2w_prev: torch.Tensor, c2w_prev2: torch.Tensor | None) -> torch.Tensor:
+    """Initial camera-to-world pose: the last relative motion applied once more."""
+    if c2w_prev2 is None:
+        return c2w_prev.clone()
+    return c2w_prev @ torch.linalg.inv(c2w_prev2) @ c2w_prev
+
+
+class Tracker:
+    """Optimises one frame's pose against a Gaussian map."""
+
+    def __init__(self, cfg: Config) -> None:
+        self.cfg = cfg
+
+    def pyramid(self, frame: Level) -> list[tuple[int, Level]]:
+        """(factor, level) from the coarsest level to the tracking resolution.
+
+        Factors are relative to the input frame; each is a multiple of the mapping downscale, so
+        the sensor variances (evaluated at mapping resolution) block-average onto every level.
+        """
+        t, m = self.cfg.tracking, self.cfg.mapping.downscale
+        if t.downscale % m:
+            raise ValueError(f"tracking.downscale ({t.downscale}) must be a multiple of "
+                             f"mapping.downscale ({m})")  # fmt: skip
+        factors = [t.downscale * 2**k for k in range(t.coarse_levels, -1, -1)]
+        return [(f, downsample(frame, f)) for f in factors]
+
+    def iteration_budget(self) -> list[int]:
+        """Iterations per pyramid level (coarsest first)."""
+        t = self.cfg.tracking
+        coarse = round(t.iterations * t.coarse_fraction) if t.coarse_levels else 0
+        per_coarse = [coarse // t.coarse_levels] * t.coarse_levels if t.coarse_levels else []
+        return per_coarse + [t.iterations - sum(per_coarse)]
+
+    def track(
+        self,
+        gmap: GaussianMap,
+        frame: Level,
+        sensor_color: torch.Tensor,
+        sensor_depth: torch.Tensor,
+        w2c_init: torch.Tensor,
+    ) -> TrackResult:
+        """Track `frame` (input resolution) from `w2c_init`.
+
+        `sensor_color`, `sensor_depth` are the frozen network's variances at mapping resolution.
+        """
+        gaussians = gmap.gaussians()
+        for p in gmap.params.values():
+            p.requires_grad_(False)
+        try:
+            w2c, loss, iterations = w2c_init.to(torch.float64), float("inf"), 0
+            for (factor, level), budget in zip(self.pyramid(frame), self.iteration_budget(),
+                                               strict=True):  # fmt: skip
+                variances = self._sensor_at(sensor_color, sensor_depth, factor)
+                w2c, loss, used = self._optimise(gaussians, level, variances, w2c, budget)
+                iterations += used
+            with torch.no_grad():
+                out, var_c, var_d = self._render(gaussians, level, variances, w2c)
+                scores = surprise_scores(out.color, out.depth, level.rgb, level.depth, var_c, var_d)
+        finally:
+            for p in gmap.params.values():
+                p.requires_grad_(True)
+        return TrackResult(w2c, loss, iterations, *scores)
+
+    def _sensor_at(self, color: torch.Tensor, depth: torch.Tensor, factor: int) -> Variances:
+        rel = factor // self.cfg.mapping.downscale
+        return block_mean(color, rel).detach(), block_mean(depth, rel).detach()
+
+    def _render(self, gaussians: Gaussians, level: Level, variances: Variances, w2c: torch.Tensor
+                ) -> tuple[RasterOutput, torch.Tensor, torch.Tensor]:  # fmt: skip
+        """Render at `w2c` and the total predictive variances (Eq. 10, 11)."""
+        u = self.cfg.uncertainty
+        out = render(gaussians, w2c.float(), level.camera, full_grad=u.full_grad)
+        var_c = predictive_variance(out.var_color, variances[0], out.alpha, u)
+        var_d = predictive_variance(out.var_depth, variances[1], out.alpha, u)
+        return out, var_c, var_d
+
+    def _optimise(
+        self,
+        gaussians: Gaussians,
+        level: Level,
+        variances: Variances,
+        w2c_start: torch.Tensor,
+        budget: int,
+    ) -> tuple[torch.Tensor, float, int]:
+        """Adam on ξ at one pyramid level; returns the lowest-loss pose, its loss, iterations."""
+        t = self.cfg.tracking
+        rho = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+        phi = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+        optimizer = torch.optim.Adam(
+            [{"params": [rho], "lr": t.trans_lr}, {"params": [phi], "lr": t.rot_lr}], amsgrad=True
+        )
+        best_w2c, best, stale, used = w2c_start, float("inf"), 0, 0
+        for used in range(1, budget + 1):  # noqa: B007 - the count is returned
+            w2c = se3_exp(torch.cat([rho, phi])) @ w2c_start
+            out, var_c, var_d = self._render(gaussians, level, variances, w2c)
+            loss = tracking_loss(out.color, out.depth, out.alpha, level.rgb, level.depth,
+                                 var_c, var_d, t)  # fmt: skip
+            value = float(loss.detach())
+            if value < best:
+                stale = 0 if best - value > t.early_stop_rel * abs(value) else stale + 1
+                best, best_w2c = value, w2c.detach()
+            else:
+                stale += 1
+            if t.early_stop_patience and stale >= t.early_stop_patience:
+                break
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+        return best_w2c, best, used

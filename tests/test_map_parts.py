@@ -1,0 +1,147 @@
+"""Seeding, Gaussian-map bookkeeping, image pyramids, submap switching and ATE."""
+
+import numpy as np
+import pytest
+import torch
+
+from bgs_batch.config import MappingConfig, SeedingConfig, SubmapConfig
+from bgs_batch.frames import Level, block_mean, downsample
+from bgs_batch.gaussian_map import GaussianMap
+from bgs_batch.geometry import pose_matrix
+from bgs_batch.metrics import align_rigid, ate
+from bgs_batch.render import Camera
+from bgs_batch.seeding import backproject, far_from, keyframe_seed_pixels, submap_seed_pixels
+from bgs_batch.slam import exceeds_motion
+from outputs.trajectory import read_tum, write_tum
+
+K = np.array([[50.0, 0, 15.5], [0, 50.0, 11.5], [0, 0, 1]])
+
+
+def unit(q):
+    return np.asarray(q) / np.linalg.norm(q)
+
+
+def test_backproject_inverts_projection():
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 3, (24, 32)).astype(np.float32)
+    c2w = pose_matrix([0.3, -0.2, 1.0], unit([0.1, 0.2, 0.3, 0.927]))
+    pixels = np.array([0, 17, 24 * 32 - 1, 400])
+    points = backproject(depth, pixels, K, c2w, 1.0)
+    cam = (points - c2w[:3, 3]) @ c2w[:3, :3]
+    uv = cam[:, :2] / cam[:, 2:] * [50, 50] + [15.5, 11.5]
+    assert np.allclose(uv, np.stack([pixels % 32, pixels // 32], 1))
+    assert np.allclose(cam[:, 2], depth.ravel()[pixels])
+    pushed = backproject(depth, pixels, K, c2w, 1.005)
+    assert np.allclose(np.linalg.norm(pushed - c2w[:3, 3], axis=1),
+                       1.005 * np.linalg.norm(points - c2w[:3, 3], axis=1))  # fmt: skip
+
+
+def test_submap_seeding_covers_edges_and_skips_invalid_depth():
+    rgb = np.zeros((40, 40, 3), np.uint8)
+    rgb[:, 20:] = 255  # one vertical edge
+    depth = np.ones((40, 40), np.float32)
+    depth[:5] = 0
+    cfg = SeedingConfig(new_submap_points=50, new_submap_gradient_points=30)
+    pixels = submap_seed_pixels(rgb, depth, cfg, np.random.default_rng(0))
+    assert len(np.unique(pixels)) == len(pixels)
+    assert np.all(depth.ravel()[pixels] > 0)
+    cols = pixels % 40
+    edge_rows = pixels[(cols == 19) | (cols == 20)] // 40
+    assert set(range(5, 39)) <= set(edge_rows.tolist())  # every valid row's edge pixel
+    again = submap_seed_pixels(rgb, depth, cfg, np.random.default_rng(0))
+    assert np.array_equal(pixels, again)
+
+
+def test_keyframe_seeding_where_thin_or_in_front():
+    depth = np.full((10, 10), 2.0, np.float32)
+    alpha = np.ones((10, 10))
+    rendered = np.full((10, 10), 2.0) + np.random.default_rng(1).normal(0, 0.01, (10, 10))
+    alpha[0, 0] = 0.3  # thin map
+    rendered[5, 5] = 3.0  # map surface far behind... rendered > measured: something in front
+    depth[9, 9] = 0  # invalid: never seeded
+    alpha[9, 9] = 0.0
+    pixels = keyframe_seed_pixels(alpha, rendered, depth, SeedingConfig(), np.random.default_rng(0))
+    assert pixels.tolist() == [0, 55]
+    capped = keyframe_seed_pixels(np.zeros((10, 10)), rendered, np.ones((10, 10)),
+                                  SeedingConfig(new_frame_points=7), np.random.default_rng(0))
+    assert len(capped) == 7
+
+
+def test_far_from_uses_the_radius():
+    existing = np.zeros((1, 3))
+    candidates = np.array([[0.005, 0, 0], [0.02, 0, 0], [0, 0, -0.0099]])
+    assert far_from(existing, candidates, 0.01).tolist() == [False, True, False]
+    assert far_from(np.empty((0, 3)), candidates, 0.01).all()
+
+
+def test_gaussian_map_add_keep_and_optimizer_state():
+    gmap = GaussianMap()
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.0]])
+    assert gmap.add(pts, np.full((5, 3), 0.5), 0.5, -7.0) == 5
+    scales = torch.exp(gmap.params["log_scales"][:, 0]).detach().numpy()
+    assert scales[0] == pytest.approx(1.0)  # 3 nearest at distance 1
+    assert torch.allclose(torch.sigmoid(gmap.params["opacity_logits"]), torch.tensor(0.5))
+    assert torch.allclose(torch.nn.functional.softplus(gmap.params["uncertainty_logits"]),
+                          torch.tensor(9.1147e-4), rtol=1e-3)  # fmt: skip
+    opt = gmap.optimizer(MappingConfig())
+    out = sum(p.sum() for p in gmap.params.values())
+    out.backward()
+    opt.step()
+    before = opt.state[gmap.params["means"]]["exp_avg"].clone()
+    removed = gmap.keep(torch.tensor([True, False, True, True, False]), opt)
+    assert removed == 2 and len(gmap) == 3
+    state = opt.state[gmap.params["means"]]
+    assert torch.equal(state["exp_avg"], before[[0, 2, 3]])
+    assert opt.param_groups[0]["params"][0] is gmap.params["means"]
+    restored = GaussianMap.from_state_dict(gmap.state_dict())
+    assert all(torch.equal(restored.params[n], gmap.params[n]) for n in gmap.params)
+
+
+def test_downsample_blocks_and_camera():
+    rgb = torch.arange(4 * 6 * 3, dtype=torch.float32).reshape(4, 6, 3)
+    depth = torch.ones(4, 6, 1)
+    depth[0, 0] = 0  # an invalid reading does not pull the block's depth down
+    depth[1, 1] = 3.0
+    level = Level(rgb, depth, Camera(10, 10, 2.5, 1.5, 6, 4))
+    half = downsample(level, 2)
+    assert half.rgb.shape == (2, 3, 3) and torch.equal(half.rgb, block_mean(rgb, 2))
+    assert half.depth[0, 0, 0] == pytest.approx((1 + 1 + 3) / 3)
+    assert (half.camera.width, half.camera.height, half.camera.fx) == (3, 2, 5)
+    assert half.camera.cx == pytest.approx(1.0)  # (2.5 + 0.5) / 2 - 0.5
+
+
+def test_submap_motion_thresholds():
+    cfg = SubmapConfig()
+    eye = np.eye(4)
+    assert not exceeds_motion(eye, pose_matrix([0.4, 0, 0], [0, 0, 0, 1.0]), cfg)
+    assert exceeds_motion(eye, pose_matrix([0.4, 0.4, 0], [0, 0, 0, 1.0]), cfg)
+    q49, q51 = (np.array([0, np.sin(np.radians(a) / 2), 0, np.cos(np.radians(a) / 2)])
+                for a in (49, 51))  # fmt: skip
+    assert not exceeds_motion(eye, pose_matrix([0, 0, 0], q49), cfg)
+    assert exceeds_motion(eye, pose_matrix([0, 0, 0], q51), cfg)
+
+
+def test_ate_closed_forms():
+    rng = np.random.default_rng(0)
+    gt = rng.normal(size=(50, 3))
+    rot = pose_matrix([0, 0, 0], unit([0.2, -0.4, 0.1, 0.89]))[:3, :3]
+    moved = gt @ rot.T + [1, 2, 3]
+    assert ate(moved, gt)["rmse"] == pytest.approx(0, abs=1e-12)  # rigid motion: aligned away
+    noise = rng.normal(size=(50, 3))
+    noise -= noise.mean(0)
+    stats = ate(gt + 0.01 * noise, gt)
+    assert stats["rmse"] <= 0.01 * np.sqrt((noise**2).sum(1).mean()) + 1e-12
+    r, t, s = align_rigid(2 * moved, gt, with_scale=True)
+    assert s == pytest.approx(0.5) and np.allclose(s * (2 * moved) @ r.T + t, gt)
+    gt_nan = gt.copy()
+    gt_nan[3] = np.nan
+    assert ate(moved, gt_nan)["frames"] == 49
+
+
+def test_tum_trajectory_round_trip(tmp_path):
+    poses = np.stack([pose_matrix([i, 2.0, -1], unit([0.1 * i, 0.2, 0.3, 0.9])) for i in range(4)])
+    poses[2] = np.nan
+    write_tum(tmp_path / "t.txt", np.arange(4) + 0.5, poses)
+    times, back = read_tum(tmp_path / "t.txt")
+    assert times.tolist() == [0.5, 1.5, 3.5]
+    assert np.allclose(back, poses[[0, 1, 3]], atol=1e-8)

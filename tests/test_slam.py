@@ -1,0 +1,66 @@
+"""The SLAM pipeline end to end on synthetic sequences: accuracy, determinism, outputs."""
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from bgs_batch.cli import main
+from bgs_batch.config import load_config
+from converters.pipeline import write_store
+from converters.synthetic import SynthConfig, synthesize
+from converters.tum import TumOptions, plan_tum
+from jobs.run import run_job
+from outputs.trajectory import read_tum
+
+
+def synthetic_store(root: Path, frames: int, size=(160, 120), seed: int = 1) -> Path:
+    folder = synthesize(root / "seq", SynthConfig(frames=frames, width=size[0], height=size[1],
+                                                  seed=seed))  # fmt: skip
+    plan = plan_tum(folder, TumOptions())
+    return write_store(plan.frames, root / "seq.h5", plan.meta).path
+
+
+@pytest.fixture(scope="module")
+def store30(tmp_path_factory) -> Path:
+    return synthetic_store(tmp_path_factory.mktemp("slam"), 30)
+
+
+@pytest.mark.slow
+def test_tracks_synthetic_sequence_to_under_a_centimetre(store30, tmp_path):
+    cfg = load_config("cpu", ["mapping.downscale=1", "tracking.downscale=1"])
+    start = time.perf_counter()
+    summary = run_job(store30, tmp_path / "job", cfg)
+    seconds = time.perf_counter() - start
+    assert summary.ate_rmse_m < 0.01, summary
+    assert seconds < 120, f"took {seconds:.0f} s"
+    assert summary.keyframes < summary.frames
+    events = [json.loads(line) for line in (tmp_path / "job/log.jsonl").read_text().splitlines()]
+    assert len(events) == 30 and events[0]["reason"] == "first-of-submap"
+    assert all({"keyframe", "reason", "score_color", "score_depth"} <= e.keys() for e in events)
+    assert all(e["score_color"] is not None for e in events[1:])
+    times, poses = read_tum(tmp_path / "job/trajectory.txt")
+    assert len(times) == 30 and np.allclose(poses[0], np.eye(4))
+    assert sorted(p.name for p in (tmp_path / "job/submaps").iterdir()) == ["000000.pt"]
+
+
+@pytest.mark.slow
+def test_same_input_same_trajectory(store30, tmp_path):
+    cfg = load_config("cpu", ["mapping.downscale=1", "tracking.downscale=1"])
+    for name in ("a", "b"):
+        run_job(store30, tmp_path / name, cfg, max_frames=6)
+    assert (tmp_path / "a/trajectory.txt").read_bytes() == (tmp_path / "b/trajectory.txt"
+                                                            ).read_bytes()  # fmt: skip
+    assert (tmp_path / "a/log.jsonl").read_text().count("\n") == 6
+
+
+def test_run_cli_rejects_bad_settings(store30, tmp_path):
+    result = CliRunner().invoke(main, ["run", str(store30), "--job-dir", str(tmp_path / "j"),
+                                       "--set", "tracking.iterashuns=3"])  # fmt: skip
+    assert result.exit_code == 2 and "unknown config key" in result.output
+    result = CliRunner().invoke(main, ["run", str(tmp_path / "none.h5"), "--job-dir",
+                                       str(tmp_path / "j")])  # fmt: skip
+    assert result.exit_code == 3 and "bgs convert" in result.output
