@@ -275,7 +275,7 @@ def synth(ctx: click.Context, out_dir: Path, frames: int, size: tuple[int, int],
 @main.command()
 @click.option("--dir", "workdir", default="demo", show_default=True,
               type=click.Path(path_type=Path), help="Folder for the demo's outputs (replaced).")
-@click.option("--frames", default=60, show_default=True, type=click.IntRange(min=2))
+@click.option("--frames", default=40, show_default=True, type=click.IntRange(min=2))
 @click.option("--size", default="320x240", show_default=True, type=ImageSize())
 @click.pass_context
 def demo(ctx: click.Context, workdir: Path, frames: int, size: tuple[int, int]) -> None:

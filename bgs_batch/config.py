@@ -34,6 +34,7 @@ class UncertaintyConfig:
     sensor_hidden: int = 32  # channels of the sensor-noise network
     sensor_min: float = 1e-4  # softplus output + this floor
     sensor_lr: float = 1e-4  # Adam, trained in mapping only
+    sensor_downscale: int = 1  # CPU lever: evaluate the network this many times coarser
 
 
 @dataclass
@@ -144,6 +145,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "mapping.iterations": 40,
         "mapping.new_submap_iterations": 60,
         "mapping.downscale": 2,
+        "uncertainty.sensor_downscale": 2,
         "seeding.new_submap_points": 30_000,
         "seeding.new_submap_gradient_points": 15_000,
         "seeding.new_frame_points": 10_000,

@@ -101,7 +101,7 @@ class Mapper:
             keyframe = self._pick(keyframes, rng)
             level = keyframe.level
             out = render(gmap.gaussians(), keyframe.w2c, level.camera, full_grad=u.full_grad)
-            sensor_c, sensor_d = self.sensor(level.rgb, level.depth)
+            sensor_c, sensor_d = self.sensor.at_scale(level.rgb, level.depth, u.sensor_downscale)
             var_c = predictive_variance(out.var_color, sensor_c, out.alpha, u)
             var_d = predictive_variance(out.var_depth, sensor_d, out.alpha, u)
             terms = mapping_loss(out.color, out.depth, level.rgb, level.depth, var_c, var_d,

@@ -100,7 +100,8 @@ class Slam:
 
         start = time.perf_counter()
         with torch.no_grad():
-            sensor_c, sensor_d = self.sensor(level.rgb, level.depth)
+            sensor_c, sensor_d = self.sensor.at_scale(level.rgb, level.depth,
+                                                      cfg.uncertainty.sensor_downscale)  # fmt: skip
         self.timings.add("sensor", time.perf_counter() - start)
 
         score_c = score_d = None

@@ -65,7 +65,8 @@ def test_demo_end_to_end(tmp_path):
     result = run("-q", "demo", "--dir", tmp_path / "demo", "--frames", "6", "--size", "64x48")
     assert result.exit_code == 0, result.output
     assert (tmp_path / "demo" / "synthetic_room.h5").is_file()
-    assert "valid (schema v1)" in result.output and "bgs run" in result.output
+    assert "valid (schema v1)" in result.output and "ATE RMSE" in result.output
+    assert (tmp_path / "demo" / "job" / "trajectory.txt").is_file()
     # a second demo replaces its own outputs instead of refusing
     assert run("-q", "demo", "--dir", tmp_path / "demo", "--frames", "6", "--size", "64x48"
                ).exit_code == 0  # fmt: skip

@@ -152,3 +152,15 @@ def test_keyframe_rule():
     restored = KeyframeSelector(KeyframeConfig())
     restored.load_state_dict(sel.state_dict())
     assert restored.since_last == sel.since_last == 1
+
+
+def test_sensor_network_at_a_coarser_scale():
+    torch.manual_seed(0)
+    net = SensorNoiseNet(hidden=8).double()
+    rgb, depth, _ = images(9, 7)
+    var_c, var_d = net.at_scale(rgb, depth, 2)
+    assert var_c.shape == var_d.shape == (9, 7, 1)
+    coarse_c, _ = net(*(t[:8, :6].reshape(4, 2, 3, 2, -1).mean((1, 3)) for t in (rgb, depth)))
+    assert torch.equal(var_c[2:4, 4:6, 0], coarse_c[1:2, 2:3, 0].expand(2, 2))
+    assert torch.equal(var_c[8, :, 0], var_c[7, :, 0])  # edge rows replicate
+    assert torch.equal(net.at_scale(rgb, depth, 1)[0], net(rgb, depth)[0])
