@@ -6,6 +6,7 @@ Job directory::
     log.jsonl        one event per frame: pose, keyframe decision and scores, losses, timings
     trajectory.txt   estimated camera-to-world poses, TUM format
     submaps/         frozen submaps (Gaussian parameters + keyframe ids), one file each
+    sensor_net.pt    the trained sensor-noise network (state dict)
     summary.json     frames, keyframes, mapping calls, fps, time per stage, ATE when GT exists
 """
 
@@ -76,6 +77,7 @@ def run_job(
             if on_frame is not None:
                 on_frame(event)
         slam.finish()
+        torch.save(slam.sensor.state_dict(), job_dir / "sensor_net.pt")
         timestamps = store.timestamps[:n]
         poses = np.stack(slam.poses)
         gt = store.poses_gt[:n] if store.has_gt else None

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from bgs_batch.cli import main
@@ -45,6 +46,8 @@ def test_tracks_synthetic_sequence_to_under_a_centimetre(store30, tmp_path):
     times, poses = read_tum(tmp_path / "job/trajectory.txt")
     assert len(times) == 30 and np.allclose(poses[0], np.eye(4))
     assert sorted(p.name for p in (tmp_path / "job/submaps").iterdir()) == ["000000.pt"]
+    weights = torch.load(tmp_path / "job/sensor_net.pt", weights_only=True)
+    assert any(name.startswith("head") for name in weights)
 
 
 @pytest.mark.slow
