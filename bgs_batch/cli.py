@@ -1,7 +1,8 @@
 """The `bgs` command line: one Click group, thin commands over the library.
 
 Exit codes: 0 ok, 1 internal error, 2 usage error, 3 invalid input, 4 output exists,
-128+N interrupted by signal N (see `bgs_batch.errors`).
+5 job directory busy or made for other inputs, 128+N interrupted by signal N
+(see `bgs_batch.errors`).
 """
 
 from __future__ import annotations
@@ -292,6 +293,38 @@ def demo(ctx: click.Context, workdir: Path, frames: int, size: tuple[int, int]) 
 
 
 @main.command()
+@click.argument("job", type=click.Path(path_type=Path))
+@click.option("--ply", is_flag=True, help="Write the submap and merged-map PLY files.")
+@click.option("--trajectory", is_flag=True,
+              help="Write the trajectories (TUM and KITTI; aligned and GT with --store).")
+@click.option("--store", type=click.Path(path_type=Path),
+              help="The job's frame store, for ground truth (aligned estimate, GT files, ATE).")
+def export(job: Path, ply: bool, trajectory: bool, store: Path | None) -> None:
+    """Write a finished job's maps and trajectories into JOB/outputs (all when no flag is given).
+
+    PLY files use the INRIA 3DGS layout (opacity logit, log scales, w-first quaternion, SH DC)
+    plus a float `uncertainty` property; trajectories are camera-to-world, TUM and KITTI. The
+    aligned estimate is rigidly aligned to GT (rotation + translation, no scale), as
+    `evo_ape tum gt.tum estimate.tum -a`.
+
+    \b
+    Example:
+      bgs export jobs/fr1_rpy --store fr1_rpy.h5
+      bgs export jobs/fr1_rpy --ply
+    """
+    from outputs.export import export_job
+
+    both = not (ply or trajectory)
+    report = export_job(job, ply=ply or both, trajectory=trajectory or both, store=store)
+    for path in report.files:
+        count = report.gaussians.get(path.name)
+        click.echo(f"wrote {path}" + ("" if count is None else f" ({count} Gaussians)"))
+    for alignment, stats in report.ate.items():
+        click.echo(f"ATE RMSE ({alignment.replace('_', ' ')}): {stats['rmse'] * 100:.2f} cm "
+                   f"over {stats['frames']} frames")  # fmt: skip
+
+
+@main.command()
 @click.argument("store", type=click.Path(path_type=Path))
 @click.option("--job-dir", required=True, type=click.Path(path_type=Path),
               help="Folder for the job's outputs (created).")
@@ -300,9 +333,11 @@ def demo(ctx: click.Context, workdir: Path, frames: int, size: tuple[int, int]) 
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override one setting, e.g. --set tracking.iterations=100 (repeatable).")
 @click.option("--max-frames", type=click.IntRange(min=1), help="Process only the first N frames.")
+@click.option("--force", is_flag=True,
+              help="Reuse JOB_DIR although it was made for another store or other settings.")
 @click.pass_context
 def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: tuple[str, ...],
-        max_frames: int | None) -> None:  # fmt: skip
+        max_frames: int | None, force: bool) -> None:  # fmt: skip
     """Run uncertainty-aware Gaussian-splatting SLAM on a frame store.
 
     Writes config.json, log.jsonl (one event per frame: pose, keyframe decision with both
@@ -330,7 +365,8 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
         advance(1, status)
 
     with progress_bar("SLAM", total, _show_progress(ctx)) as advance:
-        summary = run_job(store, job_dir, cfg, max_frames=max_frames, on_frame=on_frame)
+        summary = run_job(store, job_dir, cfg, max_frames=max_frames, force=force,
+                          on_frame=on_frame)  # fmt: skip
     ate = "n/a (no GT)" if summary.ate_rmse_m is None else f"{summary.ate_rmse_m * 100:.2f} cm"
     click.echo(f"{summary.frames} frames, {summary.keyframes} keyframes, {summary.fps:.2f} fps, "
                f"ATE RMSE {ate}; outputs in {job_dir}")  # fmt: skip

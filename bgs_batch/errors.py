@@ -7,6 +7,7 @@ Exit codes (documented in README):
 - 2 usage error (bad command line; Click's convention)
 - 3 invalid input data (missing, unreadable or inconsistent files)
 - 4 output already exists (pass ``--overwrite`` to replace it)
+- 5 job directory in use by another process, or made for another store or settings
 - 128 + N interrupted by signal N (130 for Ctrl-C, 143 for SIGTERM); nothing half-written is left
 """
 

@@ -2,6 +2,8 @@
 
 Job directory::
 
+    job.json         input store (path, SHA-256), resolved configuration, package version
+    lock             present while a process runs the job (host and PID)
     config.json      the resolved configuration (preset + overrides)
     log.jsonl        one event per frame: pose, keyframe decision and scores, losses, timings
     trajectory.txt   estimated camera-to-world poses, TUM format
@@ -27,6 +29,7 @@ from bgs_batch.config import Config
 from bgs_batch.metrics import ate
 from bgs_batch.slam import Slam
 from bgs_batch.store import FrameStore
+from jobs.jobdir import check_or_write_record, job_lock, job_record
 from outputs.trajectory import write_tum
 
 
@@ -61,11 +64,31 @@ def run_job(
     cfg: Config,
     *,
     max_frames: int | None = None,
+    force: bool = False,
     on_frame: Callable[[dict[str, Any]], None] | None = None,
 ) -> RunSummary:
-    """Run SLAM over the store (or its first `max_frames`) and write the job directory."""
+    """Run SLAM over the store (or its first `max_frames`) and write the job directory.
+
+    Refuses a job directory locked by a live process, or made for another store or settings
+    (unless `force`).
+    """
     set_threads(cfg.threads)
+    with FrameStore(store_path):  # validate before taking the job directory
+        pass
     job_dir.mkdir(parents=True, exist_ok=True)
+    with job_lock(job_dir):
+        record = job_record(store_path, cfg.to_dict(), max_frames)
+        check_or_write_record(job_dir, record, force)
+        return _run(store_path, job_dir, cfg, max_frames, on_frame)
+
+
+def _run(
+    store_path: Path,
+    job_dir: Path,
+    cfg: Config,
+    max_frames: int | None,
+    on_frame: Callable[[dict[str, Any]], None] | None,
+) -> RunSummary:
     (job_dir / "config.json").write_text(cfg.to_json())
     start = time.perf_counter()
     with FrameStore(store_path) as store, open(job_dir / "log.jsonl", "w") as log:

@@ -1,0 +1,112 @@
+"""A job directory's identity and ownership: ``job.json`` and the lock file (DESIGN.md §6).
+
+``job.json`` records what the job computes (input store with its checksum, resolved config,
+package version); running again on the same directory with other inputs or settings is refused
+unless forced, so a resumed job can never silently mix two configurations. The lock file holds
+the owner's host and PID: a second ``bgs run`` on the same job refuses with a clear message,
+and a lock left by a dead process (same host, PID gone) is taken over.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import socket
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from bgs_batch import __version__
+from bgs_batch.errors import BgsError
+
+JOB_FILE = "job.json"
+LOCK_FILE = "lock"
+CHECKSUM_BLOCK = 1 << 20
+
+
+class JobError(BgsError):
+    """The job directory cannot be used as asked (locked, or made for other inputs)."""
+
+    exit_code = 5
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file, read in blocks (stores can be many GB)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(CHECKSUM_BLOCK):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+IDENTITY = ("store", "config", "max_frames")  # what must not change between runs of a job
+
+
+def job_record(store: Path, config: dict[str, Any], max_frames: int | None) -> dict[str, Any]:
+    """What identifies a job: its input (path and checksum), settings and package version."""
+    return {
+        "store": {"path": str(Path(store).resolve()), "sha256": file_sha256(store)},
+        "config": config,
+        "max_frames": max_frames,
+        "package_version": __version__,
+    }
+
+
+def check_or_write_record(job_dir: Path, record: dict[str, Any], force: bool) -> None:
+    """Write ``job.json`` for a new job; for an existing one, refuse changed inputs or settings."""
+    path = job_dir / JOB_FILE
+    if path.exists() and not force:
+        old = json.loads(path.read_text())
+        changes = [name for name in IDENTITY if old.get(name) != record[name]]
+        if changes:
+            what = " and ".join(changes)
+            raise JobError(
+                f"{job_dir} belongs to a job with a different {what} (see {path}); use another "
+                "--job-dir, or pass --force to restart this one with the new settings"
+            )
+        return
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(record, indent=2, sort_keys=True))
+    os.replace(tmp, path)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except OSError as err:
+        return err.errno == errno.EPERM  # exists, owned by someone else
+    return True
+
+
+@contextmanager
+def job_lock(job_dir: Path) -> Iterator[None]:
+    """Hold the job's lock for the duration of the block (atomic create; stale locks reclaimed)."""
+    path = job_dir / LOCK_FILE
+    me = {"host": socket.gethostname(), "pid": os.getpid()}
+    while True:
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                owner = json.loads(path.read_text())
+            except (OSError, ValueError):
+                owner = {}
+            same_host = owner.get("host") == me["host"]
+            if same_host and isinstance(owner.get("pid"), int) and not _pid_alive(owner["pid"]):
+                path.unlink(missing_ok=True)  # stale: its process is gone
+                continue
+            raise JobError(
+                f"{job_dir} is in use by process {owner.get('pid', '?')} on "
+                f"{owner.get('host', '?')}; wait for it to finish (bgs status {job_dir}), or "
+                f"delete {path} if that process is really gone"
+            ) from None
+        with os.fdopen(fd, "w") as fh:
+            json.dump(me, fh)
+        break
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)
