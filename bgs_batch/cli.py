@@ -370,3 +370,34 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
     ate = "n/a (no GT)" if summary.ate_rmse_m is None else f"{summary.ate_rmse_m * 100:.2f} cm"
     click.echo(f"{summary.frames} frames, {summary.keyframes} keyframes, {summary.fps:.2f} fps, "
                f"ATE RMSE {ate}; outputs in {job_dir}")  # fmt: skip
+
+
+@main.command()
+@click.argument("jobs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object per job.")
+def status(jobs: tuple[Path, ...], as_json: bool) -> None:
+    """Show the state of job directories: running, done, failed or new.
+
+    Also frames processed, keyframes, frames per second and the last error. Safe to call
+    while a job runs.
+
+    \b
+    Example:
+      bgs status jobs/*
+    """
+    from rich.console import Console
+    from rich.table import Table
+
+    from jobs.status import job_status
+
+    statuses = [job_status(job) for job in jobs]
+    if as_json:
+        click.echo(json.dumps([s.as_dict() for s in statuses], indent=2))
+        return
+    table = Table("job", "state", "frames", "keyframes", "fps", "last error")
+    colours = {"running": "cyan", "done": "green", "failed": "red", "new": "white"}
+    for s in statuses:
+        fps = "-" if s.fps is None else f"{s.fps:.2f}"
+        table.add_row(s.job, f"[{colours[s.state]}]{s.state}[/]", str(s.frames_done),
+                      str(s.keyframes), fps, s.last_error or "")  # fmt: skip
+    Console().print(table)

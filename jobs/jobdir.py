@@ -81,6 +81,27 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def _read_owner(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _is_stale(owner: dict[str, Any]) -> bool:
+    """A lock is stale when it names a process on this host that no longer exists."""
+    pid = owner.get("pid")
+    if owner.get("host") != socket.gethostname() or not isinstance(pid, int):
+        return False
+    return not _pid_alive(pid)
+
+
+def lock_owner_alive(job_dir: Path) -> bool:
+    """True while the process holding the job's lock may still be running."""
+    path = job_dir / LOCK_FILE
+    return path.exists() and not _is_stale(_read_owner(path))
+
+
 @contextmanager
 def job_lock(job_dir: Path) -> Iterator[None]:
     """Hold the job's lock for the duration of the block (atomic create; stale locks reclaimed)."""
@@ -90,13 +111,9 @@ def job_lock(job_dir: Path) -> Iterator[None]:
         try:
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
         except FileExistsError:
-            try:
-                owner = json.loads(path.read_text())
-            except (OSError, ValueError):
-                owner = {}
-            same_host = owner.get("host") == me["host"]
-            if same_host and isinstance(owner.get("pid"), int) and not _pid_alive(owner["pid"]):
-                path.unlink(missing_ok=True)  # stale: its process is gone
+            owner = _read_owner(path)
+            if _is_stale(owner):
+                path.unlink(missing_ok=True)  # its process is gone
                 continue
             raise JobError(
                 f"{job_dir} is in use by process {owner.get('pid', '?')} on "

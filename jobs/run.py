@@ -10,6 +10,7 @@ Job directory::
     submaps/         frozen submaps (Gaussian parameters + keyframe ids), one file each
     sensor_net.pt    the trained sensor-noise network (state dict)
     summary.json     frames, keyframes, mapping calls, fps, time per stage, ATE when GT exists
+    error.json       the exception that stopped the last run, if any
 """
 
 from __future__ import annotations
@@ -48,6 +49,9 @@ class RunSummary:
         return asdict(self)
 
 
+ERROR_FILE = "error.json"
+SUMMARY_FILE = "summary.json"
+LOG_FILE = "log.jsonl"
 TORCH_THREADS = 1  # torch only runs small per-pixel ops; its spinning OpenMP pool fights numba's
 
 
@@ -79,7 +83,13 @@ def run_job(
     with job_lock(job_dir):
         record = job_record(store_path, cfg.to_dict(), max_frames)
         check_or_write_record(job_dir, record, force)
-        return _run(store_path, job_dir, cfg, max_frames, on_frame)
+        (job_dir / ERROR_FILE).unlink(missing_ok=True)
+        try:
+            return _run(store_path, job_dir, cfg, max_frames, on_frame)
+        except BaseException as err:  # recorded for `bgs status`, then re-raised
+            error = {"type": type(err).__name__, "message": str(err)}
+            (job_dir / ERROR_FILE).write_text(json.dumps(error))
+            raise
 
 
 def _run(
@@ -91,11 +101,12 @@ def _run(
 ) -> RunSummary:
     (job_dir / "config.json").write_text(cfg.to_json())
     start = time.perf_counter()
-    with FrameStore(store_path) as store, open(job_dir / "log.jsonl", "w") as log:
+    with FrameStore(store_path) as store, open(job_dir / LOG_FILE, "w") as log:
         n = len(store) if max_frames is None else min(max_frames, len(store))
         slam = Slam(cfg, store.intrinsics, job_dir / "submaps")
         for frame in store.frames(range(n)):
             event = slam.process(frame)
+            event["elapsed_s"] = time.perf_counter() - start
             log.write(json.dumps(event) + "\n")
             if on_frame is not None:
                 on_frame(event)
@@ -117,5 +128,5 @@ def _run(
         stage_seconds=asdict(slam.timings),
         ate_rmse_m=ate_rmse,
     )
-    (job_dir / "summary.json").write_text(json.dumps(summary.as_dict(), indent=2))
+    (job_dir / SUMMARY_FILE).write_text(json.dumps(summary.as_dict(), indent=2))
     return summary

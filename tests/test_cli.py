@@ -22,7 +22,8 @@ def test_version_and_help_teach():
     assert run("--version").output.strip() == f"bgs, version {__version__}"
     top = run("--help")
     assert top.exit_code == 0 and "bgs convert tum" in top.output and "bgs demo" in top.output
-    for command in (["convert", "tum"], ["inspect"], ["synth"], ["demo"], ["convert"]):
+    for command in (["convert", "tum"], ["convert", "scannet"], ["convert", "bag"], ["inspect"],
+                    ["synth"], ["demo"], ["convert"], ["run"], ["status"]):  # fmt: skip
         result = run(*command, "--help")
         assert result.exit_code == 0 and "Example" in result.output, command
 

@@ -65,3 +65,26 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
     (tmp_path / LOCK_FILE).write_text(json.dumps(foreign))
     with pytest.raises(JobError, match="elsewhere"), job_lock(tmp_path):
         pass
+
+
+def test_status_reports_done_failed_running_and_bad_dirs(tmp_path):
+    store = tiny_store(tmp_path)
+    done = tmp_path / "done"
+    run_job(store, done, load_config("cpu", TINY), max_frames=2)
+    broken = tmp_path / "broken"
+    with pytest.raises(KeyboardInterrupt):
+        run_job(store, broken, load_config("cpu", TINY), max_frames=2,
+                on_frame=lambda _e: (_ for _ in ()).throw(KeyboardInterrupt()))  # fmt: skip
+    result = CliRunner().invoke(main, ["status", str(done), str(broken), "--json"])
+    assert result.exit_code == 0, result.output
+    by_state = {s["state"]: s for s in json.loads(result.output)}
+    assert by_state["done"]["frames_done"] == 2 and by_state["done"]["fps"] > 0
+    assert by_state["failed"]["frames_done"] == 1
+    assert by_state["failed"]["last_error"].startswith("KeyboardInterrupt")
+    with job_lock(done):
+        assert json.loads(CliRunner().invoke(main, ["status", str(done), "--json"]).output
+                          )[0]["state"] == "running"  # fmt: skip
+    table = CliRunner().invoke(main, ["status", str(done)])
+    assert "done" in table.output
+    missing = CliRunner().invoke(main, ["status", str(tmp_path / "nope")])
+    assert missing.exit_code == 3 and "not a bgs job directory" in missing.output
