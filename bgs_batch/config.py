@@ -117,6 +117,7 @@ class Config:
     threads: int = 2
     crop_edge: int = 0  # pixels removed at every image border before anything else
     max_depth: float = 10.0  # m; deeper readings are treated as invalid
+    checkpoint_every: int = 10  # frames between job checkpoints (and on SIGTERM/SIGUSR1/SIGINT)
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)

@@ -9,7 +9,8 @@ submaps are frozen and written to disk, so memory stays bounded. Ground truth is
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +18,7 @@ import numpy as np
 import torch
 
 from bgs_batch.config import Config, SubmapConfig
-from bgs_batch.frames import camera_for, crop_and_clip, downsample, to_level
+from bgs_batch.frames import Level, camera_for, crop_and_clip, downsample, to_level
 from bgs_batch.gaussian_map import GaussianMap
 from bgs_batch.keyframes import KeyframeSelector
 from bgs_batch.mapping import Keyframe, Mapper
@@ -89,13 +90,18 @@ class Slam:
         self.active_keyframes: list[Keyframe] = []
         self.submap_first_frame = 0
 
-    def process(self, frame: Frame) -> dict[str, Any]:
-        """Track, select and map one frame; return its log event."""
+    def prepare(self, frame: Frame) -> tuple[Level, Level]:
+        """The frame at input resolution (cropped, depth clipped) and at mapping resolution."""
         cfg = self.cfg
         rgb, depth = crop_and_clip(frame.rgb, frame.depth, cfg.crop_edge, cfg.max_depth)
         camera = camera_for(self.intrinsics, rgb.shape[1], rgb.shape[0], cfg.crop_edge)
         full = to_level(rgb, depth, camera)
-        level = downsample(full, cfg.mapping.downscale)
+        return full, downsample(full, cfg.mapping.downscale)
+
+    def process(self, frame: Frame) -> dict[str, Any]:
+        """Track, select and map one frame; return its log event."""
+        cfg = self.cfg
+        full, level = self.prepare(frame)
         event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
 
         start = time.perf_counter()
@@ -113,7 +119,9 @@ class Slam:
             init = constant_velocity(torch.from_numpy(self.poses[-1]), prev2)
             result = self.tracker.track(self.gmap, full, sensor_c, sensor_d,
                                         torch.linalg.inv(init))  # fmt: skip
-            c2w = torch.linalg.inv(result.w2c).numpy()
+            # C order always: LAPACK returns column-major, and a checkpoint restores row-major;
+            # the layout changes BLAS's summation order, so resuming would drift by an ulp
+            c2w = np.ascontiguousarray(torch.linalg.inv(result.w2c).numpy())
             score_c, score_d = result.score_color, result.score_depth
             event.update(track_loss=result.loss, track_iterations=result.iterations)
             self.timings.add("tracking", time.perf_counter() - start)
@@ -160,6 +168,46 @@ class Slam:
                                          last_frame, keyframes, len(self.gmap)))  # fmt: skip
         self.gmap = GaussianMap()
         self.active_keyframes = []
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue bit for bit: tensors and plain Python values only
+        (``torch.load(weights_only=True)`` reads it). Keyframe images are not stored: they are
+        re-read from the frame store on load."""
+        poses = np.stack(self.poses) if self.poses else np.zeros((0, 4, 4))
+        return {
+            "poses": torch.from_numpy(poses),
+            "submaps": [asdict(s) for s in self.submaps],
+            "keyframe_frames": list(self.keyframe_frames),
+            "mapping_calls": self.mapping_calls,
+            "timings": asdict(self.timings),
+            "gmap": self.gmap.state_dict(),
+            "active_keyframes": [k.frame for k in self.active_keyframes],
+            "submap_first_frame": self.submap_first_frame,
+            "sensor": self.sensor.state_dict(),
+            "sensor_opt": self.sensor_opt.state_dict(),
+            "selector": self.selector.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any], read_frame: Callable[[int], Frame]) -> None:
+        """Restore `state_dict`; `read_frame(i)` re-reads keyframe i of the active submap."""
+        self.poses = [np.ascontiguousarray(p) for p in state["poses"].numpy()]
+        self.submaps = [SubmapRecord(**s) for s in state["submaps"]]
+        self.keyframe_frames = list(state["keyframe_frames"])
+        self.mapping_calls = int(state["mapping_calls"])
+        self.timings = Timings(**state["timings"])
+        self.gmap = GaussianMap.from_state_dict(state["gmap"])
+        self.active_keyframes = [
+            Keyframe(i, self.prepare(read_frame(i))[1], self.poses[i])
+            for i in state["active_keyframes"]
+        ]
+        self.submap_first_frame = int(state["submap_first_frame"])
+        self.sensor.load_state_dict(state["sensor"])
+        self.sensor_opt.load_state_dict(state["sensor_opt"])
+        self.selector.load_state_dict(state["selector"])
+        self.rng.bit_generator.state = state["rng"]
+        torch.set_rng_state(state["torch_rng"])
 
     def finish(self) -> None:
         """Write the last submap too (LoopSplat drops it; its frames deserve a map)."""

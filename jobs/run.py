@@ -30,7 +30,9 @@ from bgs_batch.config import Config
 from bgs_batch.metrics import ate
 from bgs_batch.slam import Slam
 from bgs_batch.store import FrameStore
+from jobs.checkpoint import load_latest, write_checkpoint
 from jobs.jobdir import check_or_write_record, job_lock, job_record
+from jobs.signals import Preempted, stop_requests
 from outputs.trajectory import write_tum
 
 
@@ -99,17 +101,27 @@ def _run(
     max_frames: int | None,
     on_frame: Callable[[dict[str, Any]], None] | None,
 ) -> RunSummary:
+    if (job_dir / SUMMARY_FILE).exists():  # finished before: nothing to do (array reruns)
+        return RunSummary(**json.loads((job_dir / SUMMARY_FILE).read_text()))
     (job_dir / "config.json").write_text(cfg.to_json())
-    start = time.perf_counter()
-    with FrameStore(store_path) as store, open(job_dir / LOG_FILE, "w") as log:
+    with FrameStore(store_path) as store, stop_requests() as stop:
         n = len(store) if max_frames is None else min(max_frames, len(store))
         slam = Slam(cfg, store.intrinsics, job_dir / "submaps")
-        for frame in store.frames(range(n)):
-            event = slam.process(frame)
-            event["elapsed_s"] = time.perf_counter() - start
-            log.write(json.dumps(event) + "\n")
-            if on_frame is not None:
-                on_frame(event)
+        done, previous_seconds = _resume(slam, store, job_dir)
+        start = time.perf_counter() - previous_seconds
+        with open(job_dir / LOG_FILE, "a") as log:
+            for frame in store.frames(range(done, n)):
+                event = slam.process(frame)
+                event["elapsed_s"] = time.perf_counter() - start
+                log.write(json.dumps(event) + "\n")
+                if on_frame is not None:
+                    on_frame(event)
+                done = frame.index + 1
+                if done % cfg.checkpoint_every == 0 or stop.requested:
+                    log.flush()
+                    write_checkpoint(job_dir, done, _job_state(slam, time.perf_counter() - start))
+                if stop.requested and done < n:
+                    raise Preempted(stop.requested, done, job_dir)
         slam.finish()
         torch.save(slam.sensor.state_dict(), job_dir / "sensor_net.pt")
         timestamps = store.timestamps[:n]
@@ -130,3 +142,24 @@ def _run(
     )
     (job_dir / SUMMARY_FILE).write_text(json.dumps(summary.as_dict(), indent=2))
     return summary
+
+
+def _job_state(slam: Slam, seconds: float) -> dict[str, Any]:
+    return {"slam": slam.state_dict(), "seconds": seconds}
+
+
+def _resume(slam: Slam, store: FrameStore, job_dir: Path) -> tuple[int, float]:
+    """Restore the newest valid checkpoint (if any) and cut the log back to it.
+
+    Returns (frames done, seconds already spent). Without a checkpoint the log starts empty.
+    """
+    latest = load_latest(job_dir)
+    done, seconds = 0, 0.0
+    if latest is not None:
+        done, state = latest
+        slam.load_state_dict(state["slam"], store.__getitem__)
+        seconds = float(state["seconds"])
+    log_path = job_dir / LOG_FILE
+    lines = log_path.read_text().splitlines(keepends=True)[:done] if log_path.exists() else []
+    log_path.write_text("".join(lines))
+    return done, seconds

@@ -1,10 +1,16 @@
 """Job directories: identity (job.json), refusal of changed inputs, and the lock."""
 
+import errno
 import json
 import os
+import signal
 import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
+import torch
 from click.testing import CliRunner
 from conftest import make_tum_folder
 
@@ -12,6 +18,7 @@ from bgs_batch.cli import main
 from bgs_batch.config import load_config
 from converters.pipeline import write_store
 from converters.tum import TumOptions, plan_tum
+from jobs.checkpoint import CHECKPOINT_DIR, load_latest, write_checkpoint
 from jobs.jobdir import LOCK_FILE, JobError, job_lock
 from jobs.run import run_job
 
@@ -88,3 +95,114 @@ def test_status_reports_done_failed_running_and_bad_dirs(tmp_path):
     assert "done" in table.output
     missing = CliRunner().invoke(main, ["status", str(tmp_path / "nope")])
     assert missing.exit_code == 3 and "not a bgs job directory" in missing.output
+
+
+# ---------------------------------------------------------------- checkpoints and resume
+
+RESUME = ["mapping.iterations=6", "mapping.new_submap_iterations=6", "tracking.iterations=8",
+          "checkpoint_every=2"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def resume_case(tmp_path_factory):
+    """A 12-frame store and the uninterrupted run every resumed run must equal."""
+    root = tmp_path_factory.mktemp("resume")
+    folder = make_tum_folder(root, frames=12, size=(64, 48), seed=5)
+    plan = plan_tum(folder, TumOptions())
+    store = write_store(plan.frames, root / "s.h5", plan.meta).path
+    run_job(store, root / "reference", load_config("cpu", RESUME))
+    return store, root / "reference"
+
+
+def assert_same_result(job, reference):
+    assert (job / "trajectory.txt").read_bytes() == (reference / "trajectory.txt").read_bytes()
+    names = sorted(p.name for p in (reference / "submaps").iterdir())
+    assert sorted(p.name for p in (job / "submaps").iterdir()) == names
+    for name in names:
+        a = torch.load(job / "submaps" / name, weights_only=True)["params"]
+        b = torch.load(reference / "submaps" / name, weights_only=True)["params"]
+        assert all(torch.equal(a[k], b[k]) for k in b)
+    ours = [json.loads(x) for x in (job / "log.jsonl").read_text().splitlines()]
+    theirs = [json.loads(x) for x in (reference / "log.jsonl").read_text().splitlines()]
+    strip = ("elapsed_s",)
+    assert [{k: v for k, v in e.items() if k not in strip} for e in ours] == [
+        {k: v for k, v in e.items() if k not in strip} for e in theirs]
+
+
+def bgs_run(store, job):
+    args = [str(Path(sys.executable).with_name("bgs")), "-q", "run", str(store), "--job-dir",
+            str(job), *sum((["--set", s] for s in RESUME), [])]  # fmt: skip
+    return subprocess.Popen(args, stderr=subprocess.PIPE, text=True)
+
+
+def wait_for_frames(job, count, proc):
+    log = job / "log.jsonl"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if log.exists() and log.read_text().count("\n") >= count:
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"the run ended or stalled before frame {count}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kill_at", [3, 6, 9])
+def test_kill_9_then_resume_equals_uninterrupted(resume_case, tmp_path, kill_at):
+    store, reference = resume_case
+    job = tmp_path / "job"
+    proc = bgs_run(store, job)
+    wait_for_frames(job, kill_at, proc)
+    proc.kill()
+    proc.wait()
+    assert not (job / "summary.json").exists()
+    run_job(store, job, load_config("cpu", RESUME))
+    assert_same_result(job, reference)
+
+
+@pytest.mark.slow
+def test_sigterm_checkpoints_and_exits_75(resume_case, tmp_path):
+    store, reference = resume_case
+    job = tmp_path / "job"
+    proc = bgs_run(store, job)
+    wait_for_frames(job, 3, proc)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 75, err
+    assert "SIGTERM" in err and "continues where it stopped" in err
+    frames = load_latest(job)[0]
+    assert frames == (job / "log.jsonl").read_text().count("\n") >= 3
+    run_job(store, job, load_config("cpu", RESUME))
+    assert_same_result(job, reference)
+
+
+def test_damaged_newest_checkpoint_falls_back(resume_case, tmp_path, caplog):
+    store, reference = resume_case
+    job = tmp_path / "job"
+
+    def stop_at_frame_5(event):
+        if event["frame"] == 5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_job(store, job, load_config("cpu", RESUME), on_frame=stop_at_frame_5)
+    newest = sorted((job / CHECKPOINT_DIR).glob("*.pt"))[-1]
+    assert newest.name.startswith("00000004")
+    newest.write_bytes(newest.read_bytes()[:100])  # truncated
+    run_job(store, job, load_config("cpu", RESUME))
+    assert "damaged" in caplog.text
+    assert_same_result(job, reference)
+
+
+def test_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch):
+    first = write_checkpoint(tmp_path, 2, {"x": torch.ones(3)})
+
+    def disk_full(*_args):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", disk_full)
+    with pytest.raises(OSError, match="No space"):
+        write_checkpoint(tmp_path, 4, {"x": torch.zeros(3)})
+    monkeypatch.undo()
+    assert sorted((tmp_path / CHECKPOINT_DIR).iterdir()) == [first]  # no temp file left
+    frames, state = load_latest(tmp_path)
+    assert frames == 2 and torch.equal(state["x"], torch.ones(3))

@@ -1,0 +1,70 @@
+"""Checkpoints of a running job: atomic, checksummed, the newest two kept (DESIGN.md §6).
+
+A checkpoint is one file ``checkpoints/<frames done>-<sha256 prefix>.pt`` written to a temporary
+name, fsynced and renamed, so a crash never leaves a half-written file under a final name, and a
+file damaged later (truncated copy, full disk) fails its checksum and is skipped in favour of
+the previous one. Contents are tensors and plain values: ``torch.load(weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+
+CHECKPOINT_DIR = "checkpoints"
+KEEP = 2
+DIGEST_CHARS = 16
+
+log = logging.getLogger(__name__)
+
+
+def _fsync_dir(folder: Path) -> None:
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_checkpoint(job_dir: Path, frames_done: int, state: dict[str, Any]) -> Path:
+    """Write the state after `frames_done` frames; keep only the newest `KEEP` checkpoints."""
+    folder = job_dir / CHECKPOINT_DIR
+    folder.mkdir(exist_ok=True)
+    buffer = io.BytesIO()
+    torch.save({"frames_done": frames_done, "state": state}, buffer)
+    data = buffer.getvalue()
+    digest = hashlib.sha256(data).hexdigest()[:DIGEST_CHARS]
+    path = folder / f"{frames_done:08d}-{digest}.pt"
+    tmp = folder / f".{path.name}.tmp"
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # e.g. disk full: the previous checkpoints stay intact
+        raise
+    _fsync_dir(folder)
+    for old in sorted(folder.glob("*.pt"))[:-KEEP]:
+        old.unlink()
+    return path
+
+
+def load_latest(job_dir: Path) -> tuple[int, dict[str, Any]] | None:
+    """(frames done, state) of the newest valid checkpoint, or None; damaged ones are reported."""
+    for path in sorted((job_dir / CHECKPOINT_DIR).glob("*.pt"), reverse=True):
+        data = path.read_bytes()
+        digest = path.stem.rsplit("-", 1)[-1]
+        if hashlib.sha256(data).hexdigest()[:DIGEST_CHARS] != digest:
+            log.warning("checkpoint %s is damaged (checksum mismatch); using an older one", path)
+            continue
+        payload = torch.load(io.BytesIO(data), weights_only=True)
+        return int(payload["frames_done"]), payload["state"]
+    return None

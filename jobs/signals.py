@@ -1,0 +1,53 @@
+"""Graceful stops for jobs: SIGTERM, SIGUSR1 (Slurm's warning) and SIGINT finish the current
+frame, write a checkpoint and exit with `PREEMPTED_EXIT` so the job can be resumed or requeued.
+"""
+
+from __future__ import annotations
+
+import signal
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from bgs_batch.errors import BgsError
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGUSR1, signal.SIGINT)
+PREEMPTED_EXIT = 75  # EX_TEMPFAIL: "try again later"; the job resumes from its checkpoint
+
+
+class Preempted(BgsError):
+    """The job stopped on request after checkpointing; run it again to continue."""
+
+    exit_code = PREEMPTED_EXIT
+
+    def __init__(self, signum: int, frames_done: int, job_dir: Path) -> None:
+        super().__init__(
+            f"stopped by {signal.Signals(signum).name} after {frames_done} frames; checkpoint "
+            f"written: `bgs run … --job-dir {job_dir}` continues where it stopped"
+        )
+
+
+class StopRequest:
+    """Set by a stop signal; the run loop checks it between frames."""
+
+    requested: int = 0  # the signal number, 0 while none arrived
+
+
+@contextmanager
+def stop_requests() -> Iterator[StopRequest]:
+    """Within the block, stop signals only set ``requested`` (restored afterwards)."""
+    request = StopRequest()
+
+    def note(signum: int, _frame: object) -> None:
+        request.requested = signum
+
+    try:
+        previous = {s: signal.signal(s, note) for s in STOP_SIGNALS}
+    except ValueError:  # not the main thread: signals cannot be caught here
+        yield request
+        return
+    try:
+        yield request
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
