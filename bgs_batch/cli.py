@@ -1,8 +1,8 @@
 """The `bgs` command line: one Click group, thin commands over the library.
 
 Exit codes: 0 ok, 1 internal error, 2 usage error, 3 invalid input, 4 output exists,
-5 job directory busy or made for other inputs, 128+N interrupted by signal N
-(see `bgs_batch.errors`).
+5 job directory busy or made for other inputs, 75 job stopped after a checkpoint,
+128+N interrupted by signal N (see `bgs_batch.errors`).
 """
 
 from __future__ import annotations
@@ -296,9 +296,10 @@ def demo(ctx: click.Context, workdir: Path, frames: int, size: tuple[int, int]) 
 @click.argument("job", type=click.Path(path_type=Path))
 @click.option("--ply", is_flag=True, help="Write the submap and merged-map PLY files.")
 @click.option("--trajectory", is_flag=True,
-              help="Write the trajectories (TUM and KITTI; aligned and GT with --store).")
+              help="Write the trajectories (TUM and KITTI; aligned and GT when GT exists).")
 @click.option("--store", type=click.Path(path_type=Path),
-              help="The job's frame store, for ground truth (aligned estimate, GT files, ATE).")
+              help="The job's frame store, for ground truth (aligned estimate, GT files, ATE) "
+                   "[default: the store recorded in JOB/job.json, if still there].")
 def export(job: Path, ply: bool, trajectory: bool, store: Path | None) -> None:
     """Write a finished job's maps and trajectories into JOB/outputs (all when no flag is given).
 
@@ -343,6 +344,8 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
     Writes config.json, log.jsonl (one event per frame: pose, keyframe decision with both
     surprise scores, losses), trajectory.txt (TUM format), submaps/ and summary.json into
     JOB_DIR. Ground truth in the store is only used afterwards, for the ATE in the summary.
+    Checkpoints every `checkpoint_every` frames; SIGTERM/SIGUSR1/Ctrl-C checkpoint and exit 75,
+    and running the same command again resumes.
 
     \b
     Example:

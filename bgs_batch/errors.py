@@ -8,6 +8,7 @@ Exit codes (documented in README):
 - 3 invalid input data (missing, unreadable or inconsistent files)
 - 4 output already exists (pass ``--overwrite`` to replace it)
 - 5 job directory in use by another process, or made for another store or settings
+- 75 a job stopped by SIGTERM/SIGUSR1/SIGINT after checkpointing (run it again to continue)
 - 128 + N interrupted by signal N (130 for Ctrl-C, 143 for SIGTERM); nothing half-written is left
 """
 
