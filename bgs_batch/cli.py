@@ -404,3 +404,45 @@ def status(jobs: tuple[Path, ...], as_json: bool) -> None:
         table.add_row(s.job, f"[{colours[s.state]}]{s.state}[/]", str(s.frames_done),
                       str(s.keyframes), fps, s.last_error or "")  # fmt: skip
     Console().print(table)
+
+
+@main.command()
+@click.argument("stores", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--job-root", required=True, type=click.Path(path_type=Path),
+              help="Folder holding one job directory per store (created).")
+@click.option("--partition", help="Slurm partition.")
+@click.option("--time", "time_limit", help="Slurm time limit per task, e.g. 24:00:00.")
+@click.option("--cpus", default=2, show_default=True, type=click.IntRange(min=1),
+              help="CPUs per task (also the run's thread count).")
+@click.option("--preset", default="cpu", show_default=True, help="Settings preset of every run.")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Override a setting of every run (repeatable).")
+@click.option("--dry-run", is_flag=True, help="Print the sbatch script instead of submitting.")
+def submit(stores: tuple[Path, ...], job_root: Path, partition: str | None,
+           time_limit: str | None, cpus: int, preset: str, overrides: tuple[str, ...],
+           dry_run: bool) -> None:  # fmt: skip
+    """Submit one Slurm array job that runs SLAM on every STORE (one task each).
+
+    Tasks get SIGUSR1 two minutes before their time limit (and SIGTERM on pre-emption),
+    checkpoint, requeue themselves and resume where they stopped. Follow them with
+    `bgs status JOB_ROOT/*`.
+
+    \b
+    Example:
+      bgs submit stores/*.h5 --job-root runs --partition cpu --time 12:00:00 --cpus 4
+      bgs submit fr1_rpy.h5 --job-root runs --dry-run
+    """
+    from bgs_batch.config import load_config
+    from jobs.slurm import SubmitOptions, sbatch_script
+    from jobs.slurm import submit as sbatch_submit
+
+    load_config(preset, list(overrides))  # refuse bad settings before anything is submitted
+    options = SubmitOptions(partition, time_limit, cpus, preset, overrides)
+    script = sbatch_script(list(stores), job_root, options)
+    if dry_run:
+        click.echo(script, nl=False)
+        return
+    job_root.mkdir(parents=True, exist_ok=True)
+    job_id = sbatch_submit(script)
+    click.echo(f"submitted array job {job_id} with {len(stores)} task(s); "
+               f"follow it with: bgs status {job_root}/*")  # fmt: skip

@@ -109,7 +109,7 @@ def _run(
         slam = Slam(cfg, store.intrinsics, job_dir / "submaps")
         done, previous_seconds = _resume(slam, store, job_dir)
         start = time.perf_counter() - previous_seconds
-        with open(job_dir / LOG_FILE, "a") as log:
+        with open(job_dir / LOG_FILE, "a", buffering=1) as log:  # line-buffered: status reads it
             for frame in store.frames(range(done, n)):
                 event = slam.process(frame)
                 event["elapsed_s"] = time.perf_counter() - start
