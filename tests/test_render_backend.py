@@ -110,6 +110,22 @@ def test_render_matches_reference_including_pose(full_grad):
     assert g_fast[-1].abs().min() > 0  # every pose component gets a gradient
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("full_grad", [True, False])
+def test_pose_only_gradient_equals_full_path(dtype, full_grad):
+    """Tracking (no Gaussian tensor requires grad) skips the appearance gradients; the pose
+    gradient must be bitwise the one of the full path."""
+    g = Gaussians(*(t.to(dtype) for t in vars(random_gaussians(200, seed=8)).values()))
+    pose = []
+    for gaussians_grad in (True, False):
+        params = [t.clone().requires_grad_(gaussians_grad) for t in vars(g).values()]
+        xi = torch.zeros(6, dtype=dtype, requires_grad=True)
+        out = render(Gaussians(*params), se3_exp(xi), CAMERA, full_grad=full_grad)
+        pose.append(random_vjp(out, [xi], seed=2)[0])
+    assert pose[0].abs().min() > 0
+    assert torch.equal(pose[0], pose[1])
+
+
 def test_gradcheck_rasterize():
     """Only the full gradient is the true derivative (the authors' one drops ∂T_i²/∂α_j).
 

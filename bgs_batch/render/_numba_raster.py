@@ -2,10 +2,11 @@
 
 Layout: ``feats[M, 4]`` holds RGB and the camera depth of each Gaussian, so colour and depth are
 composited by the same loop. Work is split over screen tiles of ``TILE_SIZE`` pixels; within a
-tile the Gaussians (depth sorted) form the outer loop and only the pixels of their opacity-aware
-bounding box are visited. The backward walks each tile back to front and writes one gradient
-slot per (tile, Gaussian) intersection; :func:`reduce_slots` sums the slots of each Gaussian in a
-fixed order, so results never depend on the thread count.
+tile the Gaussians (depth sorted) form the outer loop. The forward visits the tile-wide rows of
+each Gaussian's opacity-aware bounding box with branch-free loops that LLVM vectorises; the
+backward visits only the pixels of the box (scalar), walks each tile back to front and writes one
+gradient slot per (tile, Gaussian) intersection; :func:`reduce_slots` sums the slots of each
+Gaussian in a fixed order, so results never depend on the thread count.
 
 Work is dealt round-robin to ``n_chunks`` parallel chunks (pass ``numba.get_num_threads()``);
 the chunking never changes a result. All floating-point constants enter through the typed
@@ -21,34 +22,27 @@ import numpy as np
 from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
 
 N_FEAT = 4
-"""Composited features per Gaussian: R, G, B, depth."""
+"""Composited features per Gaussian: R, G, B, depth (the backward spells the 4 out)."""
 
 N_SLOT = 11
 """Gradient slot entries: mean x, y; conic a, b, c; opacity; 4 features; variance ``v``."""
 
 TILE_PIXELS = TILE_SIZE * TILE_SIZE
 
-(K_ALPHA_MAX, K_ALPHA_MIN, K_T_MIN, K_ZERO, K_HALF, K_ONE, K_TWO, K_SIGMA_MAX, K_LOG2E, K_LN2,
- K_ROUND) = range(11)  # fmt: skip
-FLOAT32_ROUND = 1.5 * 2.0**23
-"""Adding and subtracting it rounds a float32 to the nearest integer."""
-K_INV = 11
+(K_ALPHA_MAX, K_ALPHA_MIN, K_T_MIN, K_ZERO, K_HALF, K_ONE, K_TWO, K_SIGMA_MAX,
+ K_EXP_SCALE) = range(9)  # fmt: skip
+K_INV = 9
 """``consts[K_INV + k] = 1/k`` for k = 0..EXP_DEGREE (entry 0 unused)."""
-EXP_DEGREE = 6
-"""Taylor degree of the float32 ``e^x`` on ``|x| ≤ ln2/2`` (measured relative error < 5e-7)."""
-K_POW2 = K_INV + EXP_DEGREE + 1
-"""``consts[K_POW2 + n] = 2^-n`` for the table-and-polynomial float32 ``exp``."""
+EXP_DEGREE = 7
+"""Taylor degree of the float32 ``e^-σ`` at ``σ / 2^EXP_SQUARINGS`` (≤ 0.35)."""
+EXP_SQUARINGS = 4
+"""Squarings that turn ``e^(-σ/16)`` into ``e^-σ`` (measured relative error < 2e-6)."""
 SIGMA_MAX = math.log(1 / ALPHA_MIN) + 1e-3
 """Beyond this ``σ``, ``α ≤ e^-σ < 1/255`` for any opacity ≤ 1: the pixel is skipped exactly."""
-POW2_ENTRIES = round(SIGMA_MAX / math.log(2)) + 1
 
 FASTMATH = {"contract", "arcp", "nsz"}
 """LLVM fast-math flags of the hot kernels: FMA contraction and reciprocal rewrites only (about
-25% off the backward). No reassociation, so sums keep their order (determinism) and the float32
-rounding trick of :func:`exp_neg` survives."""
-
-SLOT_STRIDE = 4 * N_SLOT
-"""Row stride of the per-chunk slot accumulators (padding against false sharing)."""
+25% off the backward). No reassociation, so sums keep their order (determinism)."""
 
 S_MEAN, S_CONIC, S_OPACITY, S_FEAT, S_VAR = 0, 2, 5, 6, 10
 """Offsets of the parameter groups in a gradient slot."""
@@ -56,26 +50,38 @@ S_MEAN, S_CONIC, S_OPACITY, S_FEAT, S_VAR = 0, 2, 5, 6, 10
 
 def raster_consts(dtype: np.dtype) -> np.ndarray:
     """The typed constants array of the kernels in ``dtype``."""
-    values = [ALPHA_MAX, ALPHA_MIN, T_MIN, 0.0, 0.5, 1.0, 2.0, SIGMA_MAX, 1 / math.log(2)]
-    values += [math.log(2), FLOAT32_ROUND, 0.0] + [1.0 / k for k in range(1, EXP_DEGREE + 1)]
-    values += [2.0**-n for n in range(POW2_ENTRIES)]
+    values = [ALPHA_MAX, ALPHA_MIN, T_MIN, 0.0, 0.5, 1.0, 2.0, SIGMA_MAX, 2.0**-EXP_SQUARINGS]
+    values += [0.0] + [1.0 / k for k in range(1, EXP_DEGREE + 1)]
     return np.array(values, dtype=dtype)
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
 def exp_neg(sigma, fast, consts):
     """``e^-σ`` for ``0 ≤ σ ≤ SIGMA_MAX``: libm, or with ``fast`` (the float32 path) a
-    ``2^-n`` table times a degree-6 Taylor polynomial on ``|x| ≤ ln2/2``: a few float32 ulps,
-    and about 1.6× cheaper than the libm call (which took ~40% of the forward)."""
+    degree-7 Taylor polynomial at ``σ/16`` squared four times: branch and table free, so loops
+    over pixels vectorise (the libm call took ~40% of the scalar forward)."""
     if not fast:
         return math.exp(-sigma)
-    t = sigma * consts[K_LOG2E]
-    n = (t + consts[K_ROUND]) - consts[K_ROUND]  # round to nearest (float32, |t| < 2^22)
-    y = (n - t) * consts[K_LN2]
-    p = consts[K_ONE]
+    one = consts[K_ONE]
+    x = -sigma * consts[K_EXP_SCALE]
+    p = one
     for k in range(EXP_DEGREE, 0, -1):
-        p = consts[K_ONE] + y * consts[K_INV + k] * p
-    return p * consts[K_POW2 + int(n)]
+        p = one + x * consts[K_INV + k] * p
+    for _ in range(EXP_SQUARINGS):
+        p = p * p
+    return p
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def exp_neg_rows(values, fast, consts):
+    """``values[:] = e^-values`` (see :func:`exp_neg`); the dtype test is outside the loop,
+    so the float32 loop vectorises."""
+    if fast:
+        for j in range(values.shape[0]):
+            values[j] = exp_neg(values[j], True, consts)
+    else:
+        for j in range(values.shape[0]):
+            values[j] = math.exp(-values[j])
 
 
 @numba.njit(cache=True)
@@ -149,6 +155,24 @@ def bin_tiles(rects, order, tiles_x, n_tiles):
     return tile_start, isect_gauss, isect_slot, gauss_start
 
 
+@numba.njit(cache=True)
+def tile_lanes(xs, ys, px0, py0, lane_x, lane_y):
+    """Pixel coordinates of the ``TILE_PIXELS`` lanes (row major) of the tile at ``(px0, py0)``;
+    ``xs``, ``ys`` cover whole tiles, so lanes past the image border get coordinates too."""
+    for p in range(TILE_PIXELS):
+        lane_x[p] = xs[px0 + p % TILE_SIZE]
+        lane_y[p] = ys[py0 + p // TILE_SIZE]
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def sigma_rows(lane_x, lane_y, mx, my, a, b, c, sigma_max, half, out):
+    """``out = min(σ, σ_max)`` with ``σ = ½(a dx² + c dy²) + b dx dy`` on a span of lanes."""
+    for j in range(out.shape[0]):
+        dx = lane_x[j] - mx
+        dy = lane_y[j] - my
+        out[j] = min(half * (a * dx * dx + c * dy * dy) + b * dx * dy, sigma_max)
+
+
 @numba.njit(parallel=True, cache=True, fastmath=FASTMATH)
 def raster_fwd(
     means2d, conics, opacities, feats, variances, rects, tile_start, isect_gauss,
@@ -159,7 +183,13 @@ def raster_fwd(
     Per pixel: ``out_feat = Σ f_i α_i T_i``, ``out_trans = T_final = 1 − A``,
     ``out_var = max(0, Σ v_i T_i² (f_i − F)²)`` via shifted moments about the first contributor,
     ``out_dvdf = Σ v_i T_i² (f_i − F)`` (for the backward) and ``out_last`` = index of the last
-    contributing intersection (−1 if none).
+    contributing intersection (−1 if none). ``xs``, ``ys`` are the pixel coordinates, padded to
+    whole tiles.
+
+    Per Gaussian, the rows of its bounding box form one contiguous span of the tile's row-major
+    lanes, processed by branch-free loops (masks as selects) that LLVM vectorises; lanes outside
+    the box contribute exact zeros. Each loop writes few arrays: more defeats the vectoriser's
+    alias checks.
     """
     height, width = out_trans.shape
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
@@ -168,21 +198,27 @@ def raster_fwd(
     sigma_max, fast_exp = consts[K_SIGMA_MAX], feats.itemsize == 4
     half, one, two, zero = consts[K_HALF], consts[K_ONE], consts[K_TWO], consts[K_ZERO]
     for chunk in numba.prange(n_chunks):
+        lane_x = np.empty(TILE_PIXELS, feats.dtype)
+        lane_y = np.empty(TILE_PIXELS, feats.dtype)
         trans = np.empty(TILE_PIXELS, feats.dtype)
-        done = np.empty(TILE_PIXELS, np.bool_)
-        last = np.empty(TILE_PIXELS, np.int64)
+        done = np.empty(TILE_PIXELS, np.int32)
+        last = np.empty(TILE_PIXELS, np.int32)
         s0 = np.empty(TILE_PIXELS, feats.dtype)
-        acc = np.empty((TILE_PIXELS, N_FEAT), feats.dtype)
-        ref = np.empty((TILE_PIXELS, N_FEAT), feats.dtype)
-        s1 = np.empty((TILE_PIXELS, N_FEAT), feats.dtype)
-        s2 = np.empty((TILE_PIXELS, N_FEAT), feats.dtype)
+        acc = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
+        ref = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
+        s1 = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
+        s2 = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
+        alphas = np.empty(TILE_PIXELS, feats.dtype)  # σ, then e^-σ, then the masked α
+        weights = np.empty(TILE_PIXELS, feats.dtype)  # α T, 0 where not blended
+        moments = np.empty(TILE_PIXELS, feats.dtype)  # v T², 0 where not blended
         for tile in range(chunk, n_tiles, n_chunks):
             px0 = (tile % tiles_x) * TILE_SIZE
             py0 = (tile // tiles_x) * TILE_SIZE
             px1 = min(px0 + TILE_SIZE, width)
             py1 = min(py0 + TILE_SIZE, height)
+            tile_lanes(xs, ys, px0, py0, lane_x, lane_y)
             trans[:] = one
-            done[:] = False
+            done[:] = 0
             last[:] = -1
             s0[:] = zero
             acc[:] = zero
@@ -194,59 +230,72 @@ def raster_fwd(
                 if n_active == 0:  # every pixel of the tile has terminated
                     break
                 g = isect_gauss[k]
-                mx, my = means2d[g, 0], means2d[g, 1]
-                a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 o, v = opacities[g], variances[g]
-                for py in range(max(rects[g, 2], py0), min(rects[g, 3] + 1, py1)):
-                    dy = ys[py] - my
-                    row = (py - py0) * TILE_SIZE - px0
-                    for px in range(max(rects[g, 0], px0), min(rects[g, 1] + 1, px1)):
-                        p = row + px
-                        if done[p]:
-                            continue
-                        dx = xs[px] - mx
-                        sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                        if sigma > sigma_max:
-                            continue
-                        alpha = min(alpha_max, o * exp_neg(sigma, fast_exp, consts))
-                        if alpha < alpha_min:
-                            continue
-                        t_old = trans[p]
-                        t_new = t_old * (one - alpha)
-                        if t_new < t_min:
-                            done[p] = True
-                            n_active -= 1
-                            continue
-                        if last[p] < 0:
-                            ref[p, :] = feats[g, :]
-                        w = alpha * t_old
-                        u = v * t_old * t_old
-                        s0[p] += u
-                        for ch in range(N_FEAT):
-                            f = feats[g, ch]
-                            d = f - ref[p, ch]
-                            acc[p, ch] += f * w
-                            s1[p, ch] += u * d
-                            s2[p, ch] += u * d * d
-                        trans[p] = t_new
-                        last[p] = k
+                x0, x1 = xs[rects[g, 0]], xs[rects[g, 1]]
+                p0 = (max(rects[g, 2], py0) - py0) * TILE_SIZE
+                p1 = (min(rects[g, 3] + 1, py1) - py0) * TILE_SIZE
+                lx, al = lane_x[p0:p1], alphas[p0:p1]
+                sigma_rows(
+                    lx, lane_y[p0:p1], means2d[g, 0], means2d[g, 1],
+                    conics[g, 0], conics[g, 1], conics[g, 2], sigma_max, half, al,
+                )  # fmt: skip
+                exp_neg_rows(al, fast_exp, consts)
+                tr, dn, ls = trans[p0:p1], done[p0:p1], last[p0:p1]
+                wt, mo = weights[p0:p1], moments[p0:p1]
+                n = p1 - p0
+                for j in range(n):
+                    alpha = min(alpha_max, o * al[j])
+                    hit = (lx[j] >= x0) & (lx[j] <= x1) & (dn[j] == 0) & (alpha >= alpha_min)
+                    al[j] = alpha if hit else zero
+                for j in range(n):  # blend unless it would bring T below T_MIN
+                    t_old = tr[j]
+                    blend = (al[j] > zero) & (t_old * (one - al[j]) >= t_min)
+                    wt[j] = al[j] * t_old if blend else zero
+                    mo[j] = v * t_old * t_old if blend else zero
+                n_stop = 0
+                for j in range(n):
+                    stop = (al[j] > zero) & (tr[j] * (one - al[j]) < t_min)
+                    dn[j] = 1 if stop else dn[j]
+                    n_stop += 1 if stop else 0
+                n_active -= n_stop
+                for ch in range(feats.shape[1]):  # a runtime bound: no unrolling, less JIT
+                    f = feats[g, ch]
+                    rf = ref[ch, p0:p1]
+                    for j in range(n):  # the first contributor is the shift of the moments
+                        rf[j] = f if (wt[j] > zero) & (ls[j] < 0) else rf[j]
+                    ac = acc[ch, p0:p1]
+                    for j in range(n):
+                        ac[j] += f * wt[j]
+                    m1, m2 = s1[ch, p0:p1], s2[ch, p0:p1]
+                    for j in range(n):
+                        d = f - rf[j]
+                        m1[j] += mo[j] * d
+                        m2[j] += mo[j] * d * d
+                kk = np.int32(k)
+                for j in range(n):
+                    ls[j] = kk if wt[j] > zero else ls[j]
+                for j in range(n):
+                    tr[j] = tr[j] * (one - al[j]) if wt[j] > zero else tr[j]
+                sz = s0[p0:p1]
+                for j in range(n):
+                    sz[j] += mo[j]
             for py in range(py0, py1):
                 for px in range(px0, px1):
                     p = (py - py0) * TILE_SIZE + px - px0
                     out_trans[py, px] = trans[p]
                     out_last[py, px] = last[p]
                     for ch in range(N_FEAT):
-                        delta = acc[p, ch] - ref[p, ch]
-                        var = s2[p, ch] - two * delta * s1[p, ch] + delta * delta * s0[p]
-                        out_feat[py, px, ch] = acc[p, ch]
+                        delta = acc[ch, p] - ref[ch, p]
+                        var = s2[ch, p] - two * delta * s1[ch, p] + delta * delta * s0[p]
+                        out_feat[py, px, ch] = acc[ch, p]
                         out_var[py, px, ch] = max(var, zero)
-                        out_dvdf[py, px, ch] = s1[p, ch] - delta * s0[p]
+                        out_dvdf[py, px, ch] = s1[ch, p] - delta * s0[p]
 
 
 @numba.njit(parallel=True, cache=True, fastmath=FASTMATH)
 def raster_bwd(
     means2d, conics, opacities, feats, variances, rects, tile_start, isect_gauss,
-    xs, ys, consts, n_chunks, full_grad, out_feat, out_trans, out_dvdf, out_last,
+    xs, ys, consts, n_chunks, full_grad, want_appearance, out_feat, out_trans, out_dvdf, out_last,
     grad_feat, grad_alpha, grad_var, slots,
 ):  # fmt: skip
     """Back-to-front vector-Jacobian product of :func:`raster_fwd`, one slot per intersection.
@@ -254,6 +303,8 @@ def raster_bwd(
     ``slots[k]`` receives the gradient of intersection ``k`` with respect to
     (mean x, mean y, conic a, b, c, opacity, features ×4, v). ``full_grad`` adds the dependence
     of ``T_i²`` in the variances on the alphas in front of Gaussian i (dropped by the authors).
+    Without ``want_appearance`` (pose-only tracking) the colour, opacity and ``v`` entries are
+    left at zero; the geometric entries (mean, conic, depth feature) are computed identically.
     """
     height, width = out_trans.shape
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
@@ -261,7 +312,7 @@ def raster_bwd(
     alpha_max, alpha_min = consts[K_ALPHA_MAX], consts[K_ALPHA_MIN]
     sigma_max, fast_exp = consts[K_SIGMA_MAX], feats.itemsize == 4
     half, one, two, zero = consts[K_HALF], consts[K_ONE], consts[K_TWO], consts[K_ZERO]
-    slot_acc = np.empty((n_chunks, SLOT_STRIDE), feats.dtype)
+    r_weight = two if full_grad else zero  # ∂T_i²/∂α_j enters ∂L/∂α_j only in the full gradient
     for chunk in numba.prange(n_chunks):
         trans = np.empty(TILE_PIXELS, feats.dtype)
         t_final = np.empty(TILE_PIXELS, feats.dtype)
@@ -272,7 +323,6 @@ def raster_bwd(
         g_fin = np.empty((TILE_PIXELS, N_FEAT), feats.dtype)
         g_v = np.empty((TILE_PIXELS, N_FEAT), feats.dtype)
         g_behind = np.empty(TILE_PIXELS, feats.dtype)  # Σ_{j behind} w_j ⟨∂L/∂F, f_j⟩
-        acc = slot_acc[chunk, :N_SLOT]
         for tile in range(chunk, n_tiles, n_chunks):
             px0 = (tile % tiles_x) * TILE_SIZE
             py0 = (tile // tiles_x) * TILE_SIZE
@@ -297,13 +347,17 @@ def raster_bwd(
                             grad_feat[py, px, ch] - two * g_v[p, ch] * out_dvdf[py, px, ch]
                         )
             for k in range(k_end, tile_start[tile + 1]):  # behind every pixel's last contributor
-                slots[k, :] = zero
+                for e in range(N_SLOT):
+                    slots[k, e] = zero
             for k in range(k_end - 1, tile_start[tile] - 1, -1):
                 g = isect_gauss[k]
                 mx, my = means2d[g, 0], means2d[g, 1]
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 o, v = opacities[g], variances[g]
-                acc[:] = zero
+                f0, f1, f2, f3 = feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3]
+                # Slot sums in registers (an array here is reloaded after every store).
+                s_mx = s_my = s_ca = s_cb = s_cc = s_op = s_v = zero
+                s_f0 = s_f1 = s_f2 = s_f3 = zero
                 for py in range(max(rects[g, 2], py0), min(rects[g, 3] + 1, py1)):
                     dy = ys[py] - my
                     row = (py - py0) * TILE_SIZE - px0
@@ -324,37 +378,47 @@ def raster_bwd(
                         t_i = trans[p] * inv
                         w = alpha * t_i
                         u = v * t_i * t_i
-                        q = zero
-                        g_dot_f = zero
-                        for ch in range(N_FEAT):
-                            f = feats[g, ch]
-                            diff = f - fin[p, ch]
-                            acc[S_FEAT + ch] += w * g_fin[p, ch] + two * g_v[p, ch] * u * diff
-                            q += g_v[p, ch] * diff * diff
-                            g_dot_f += g_fin[p, ch] * f
+                        d0, d1 = f0 - fin[p, 0], f1 - fin[p, 1]
+                        d2, d3 = f2 - fin[p, 2], f3 - fin[p, 3]
+                        gv0, gv1, gv2, gv3 = g_v[p, 0], g_v[p, 1], g_v[p, 2], g_v[p, 3]
+                        gf0, gf1, gf2, gf3 = g_fin[p, 0], g_fin[p, 1], g_fin[p, 2], g_fin[p, 3]
+                        s_f3 += w * gf3 + two * gv3 * u * d3
+                        q = gv0 * d0 * d0 + gv1 * d1 * d1 + gv2 * d2 * d2 + gv3 * d3 * d3
+                        if want_appearance:
+                            s_f0 += w * gf0 + two * gv0 * u * d0
+                            s_f1 += w * gf1 + two * gv1 * u * d1
+                            s_f2 += w * gf2 + two * gv2 * u * d2
+                            s_v += t_i * t_i * q
+                        g_dot_f = gf0 * f0 + gf1 * f1 + gf2 * f2 + gf3 * f3
                         # ∂F/∂α_i = f_i T_i − (Σ_{j>i} f_j w_j)/(1 − α_i), dotted with ∂L/∂F.
                         d_alpha = t_i * g_dot_f + (g_alpha[p] * t_final[p] - g_behind[p]) * inv
+                        d_alpha -= r_weight * r_sum[p] * inv  # no branch: half the JIT time
                         g_behind[p] += w * g_dot_f
-                        if full_grad:
-                            d_alpha -= two * r_sum[p] * inv
-                        acc[S_VAR] += t_i * t_i * q
                         r_sum[p] += q * u
                         trans[p] = t_i
                         if raw < alpha_max:
-                            acc[S_OPACITY] += d_alpha * gauss
+                            if want_appearance:
+                                s_op += d_alpha * gauss
                             d_sigma = -d_alpha * raw
-                            acc[S_MEAN] -= d_sigma * (a * dx + b * dy)
-                            acc[S_MEAN + 1] -= d_sigma * (b * dx + c * dy)
-                            acc[S_CONIC] += d_sigma * half * dx * dx
-                            acc[S_CONIC + 1] += d_sigma * dx * dy
-                            acc[S_CONIC + 2] += d_sigma * half * dy * dy
-                slots[k, :] = acc
+                            s_mx -= d_sigma * (a * dx + b * dy)
+                            s_my -= d_sigma * (b * dx + c * dy)
+                            s_ca += d_sigma * half * dx * dx
+                            s_cb += d_sigma * dx * dy
+                            s_cc += d_sigma * half * dy * dy
+                slots[k, S_MEAN], slots[k, S_MEAN + 1] = s_mx, s_my
+                slots[k, S_CONIC], slots[k, S_CONIC + 1], slots[k, S_CONIC + 2] = s_ca, s_cb, s_cc
+                slots[k, S_OPACITY], slots[k, S_VAR] = s_op, s_v
+                slots[k, S_FEAT], slots[k, S_FEAT + 1] = s_f0, s_f1
+                slots[k, S_FEAT + 2], slots[k, S_FEAT + 3] = s_f2, s_f3
 
 
 @numba.njit(parallel=True, cache=True)
 def reduce_slots(slots, isect_slot, gauss_start, out):
     """``out[g] = Σ slots`` over Gaussian g's intersections, in a fixed (tile) order."""
     for g in numba.prange(out.shape[0]):
-        out[g, :] = 0
+        for e in range(N_SLOT):
+            out[g, e] = 0
         for j in range(gauss_start[g], gauss_start[g + 1]):
-            out[g, :] += slots[isect_slot[j], :]
+            k = isect_slot[j]
+            for e in range(N_SLOT):
+                out[g, e] += slots[k, e]

@@ -14,7 +14,7 @@ import torch
 
 from . import _numba_project as npj
 from .camera import Camera
-from .rasterize import BACKENDS, DEFAULT_BACKEND, check_float_inputs, to_numpy
+from .rasterize import BACKENDS, DEFAULT_BACKEND, check_float_inputs, scratch, to_numpy
 from .reference import project_ref
 
 
@@ -74,8 +74,8 @@ class _ProjectNumba(torch.autograd.Function):
         arrays = tuple(to_numpy(t) for t in (means, log_scales, quats, viewmat))
         params = npj.project_params(camera, arrays[0].dtype)
         dtype = arrays[0].dtype
-        means2d, conics = np.empty((n, 2), dtype), np.empty((n, 3), dtype)
-        depths, visible = np.empty(n, dtype), np.empty(n, np.bool_)
+        means2d, conics = scratch("means2d", (n, 2), dtype), scratch("conics", (n, 3), dtype)
+        depths, visible = scratch("depths", (n,), dtype), scratch("visible", (n,), np.bool_)
         npj.project_fwd(
             arrays[0], arrays[1], arrays[2], to_numpy(opacity_logits), arrays[3], params,
             camera.width, camera.height, numba.get_num_threads(),

@@ -5,6 +5,7 @@ deterministic, float32 or float64) and ``"torch"`` (the dense float64 oracle of
 :mod:`.reference`). Both implement DESIGN.md §4 / paper Eq. 3, 12, 13.
 """
 
+import threading
 from typing import NamedTuple
 
 import numba
@@ -88,6 +89,25 @@ def rasterize(
     return RasterOutput(*_RasterizeNumba.apply(*args, width, height, full_grad))
 
 
+_scratch = threading.local()
+
+
+def scratch(name: str, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    """A reusable uninitialised array for transient kernel data (per thread, grow only).
+
+    Fresh multi-megabyte arrays cost page faults on every call (several ms at 640×480); never
+    hand a scratch array (or a view of it) to the caller.
+    """
+    size = int(np.prod(shape))
+    key = (name, np.dtype(dtype))
+    buf = getattr(_scratch, "buffers", None)
+    if buf is None:
+        buf = _scratch.buffers = {}
+    if key not in buf or buf[key].size < size:
+        buf[key] = np.empty(size, dtype)
+    return buf[key][:size].reshape(shape)
+
+
 def to_numpy(t: torch.Tensor) -> np.ndarray:
     """A contiguous numpy view (no copy when already contiguous) of a detached CPU tensor."""
     return t.detach().contiguous().numpy()
@@ -111,7 +131,10 @@ class _RasterizeNumba(torch.autograd.Function):
         tile_start, isect_gauss, isect_slot, gauss_start = nr.bin_tiles(
             rects, order, tiles_x, n_tiles
         )
-        xs, ys = (np.arange(n, dtype=feats.dtype) for n in (width, height))
+        # Pixel coordinates padded to whole tiles (the kernels' lanes).
+        xs, ys = (
+            np.arange(-(-n // TILE_SIZE) * TILE_SIZE, dtype=feats.dtype) for n in (width, height)
+        )
         consts = nr.raster_consts(feats.dtype)
         out_feat = torch.empty(height, width, nr.N_FEAT, dtype=dtype)
         out_var = torch.empty(height, width, nr.N_FEAT, dtype=dtype)
@@ -136,12 +159,17 @@ class _RasterizeNumba(torch.autograd.Function):
     @staticmethod
     def backward(ctx, g_color, g_depth, g_alpha, g_var_color, g_var_depth):
         feats = ctx.kernel_args[3]
-        grad_feat = to_numpy(torch.cat([g_color, g_depth], -1))
-        grad_var = to_numpy(torch.cat([g_var_color, g_var_depth], -1))
-        slots = np.empty((ctx.kernel_args[7].shape[0], nr.N_SLOT), feats.dtype)
+        grads_in = []
+        for name, g_rgb, g_d in (("feat", g_color, g_depth), ("var", g_var_color, g_var_depth)):
+            buf = scratch("grad_" + name, (*g_rgb.shape[:2], nr.N_FEAT), feats.dtype)
+            buf[..., :3] = to_numpy(g_rgb)
+            buf[..., 3:] = to_numpy(g_d)
+            grads_in.append(buf)
+        slots = scratch("slots", (ctx.kernel_args[7].shape[0], nr.N_SLOT), feats.dtype)
+        want_appearance = any(ctx.needs_input_grad[3:6])  # else pose-only tracking
         nr.raster_bwd(
-            *ctx.kernel_args, ctx.full_grad, *ctx.saved, grad_feat, to_numpy(g_alpha[..., 0]),
-            grad_var, slots,
+            *ctx.kernel_args, ctx.full_grad, want_appearance, *ctx.saved, grads_in[0],
+            to_numpy(g_alpha[..., 0]), grads_in[1], slots,
         )  # fmt: skip
         grads = np.empty((feats.shape[0], nr.N_SLOT), feats.dtype)
         nr.reduce_slots(slots, *ctx.reduce_args, grads)
