@@ -17,19 +17,13 @@ from typing import Any
 
 import torch
 
+from bgs_batch.store import fsync_dir
+
 CHECKPOINT_DIR = "checkpoints"
 KEEP = 2
 DIGEST_CHARS = 16
 
 log = logging.getLogger(__name__)
-
-
-def _fsync_dir(folder: Path) -> None:
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def write_checkpoint(job_dir: Path, frames_done: int, state: dict[str, Any]) -> Path:
@@ -51,7 +45,7 @@ def write_checkpoint(job_dir: Path, frames_done: int, state: dict[str, Any]) -> 
     except OSError:
         tmp.unlink(missing_ok=True)  # e.g. disk full: the previous checkpoints stay intact
         raise
-    _fsync_dir(folder)
+    fsync_dir(folder)
     for old in sorted(folder.glob("*.pt"))[:-KEEP]:
         old.unlink()
     return path
