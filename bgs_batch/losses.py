@@ -13,8 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
+from bgs_batch.blur import gaussian_blur, gaussian_window
 from bgs_batch.config import TrackingConfig, UncertaintyConfig
 
 SSIM_WINDOW = 11
@@ -41,19 +41,13 @@ def predictive_variance(
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of two [H,W,C] images in [0,1] (11×11 Gaussian window, σ 1.5, zero padding)."""
     channels = a.shape[-1]
-    x = torch.arange(SSIM_WINDOW, dtype=a.dtype) - SSIM_WINDOW // 2
-    g = torch.exp(-(x**2) / (2 * SSIM_SIGMA**2))
-    g = g / g.sum()
-    window = (g[:, None] * g[None, :]).expand(channels, 1, SSIM_WINDOW, SSIM_WINDOW)
-
-    def blur(img: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(img, window, padding=SSIM_WINDOW // 2, groups=channels)
-
-    a, b = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
-    mu_a, mu_b = blur(a), blur(b)
-    var_a = blur(a * a) - mu_a**2
-    var_b = blur(b * b) - mu_b**2
-    cov = blur(a * b) - mu_a * mu_b
+    a, b = a.permute(2, 0, 1), b.permute(2, 0, 1)
+    window = gaussian_window(SSIM_WINDOW, SSIM_SIGMA, a.dtype)
+    blurred = gaussian_blur(torch.cat([a, b, a * a, b * b, a * b]), window)
+    mu_a, mu_b, mean_aa, mean_bb, mean_ab = blurred.split(channels)
+    var_a = mean_aa - mu_a**2
+    var_b = mean_bb - mu_b**2
+    cov = mean_ab - mu_a * mu_b
     num = (2 * mu_a * mu_b + SSIM_C1) * (2 * cov + SSIM_C2)
     den = (mu_a**2 + mu_b**2 + SSIM_C1) * (var_a + var_b + SSIM_C2)
     return (num / den).mean()
