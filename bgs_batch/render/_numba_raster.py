@@ -44,6 +44,11 @@ FASTMATH = {"contract", "arcp", "nsz"}
 """LLVM fast-math flags of the hot kernels: FMA contraction and reciprocal rewrites only (about
 25% off the backward). No reassociation, so sums keep their order (determinism)."""
 
+FASTMATH_REDUCE = FASTMATH | {"reassoc"}
+"""The backward's flags: reassociation lets LLVM vectorise its per-Gaussian lane sums. The
+order of a vectorised sum is fixed by the compiled code and the trip count, so results stay
+bitwise reproducible and independent of the thread count."""
+
 S_MEAN, S_CONIC, S_OPACITY, S_FEAT, S_VAR = 0, 2, 5, 6, 10
 """Offsets of the parameter groups in a gradient slot."""
 
@@ -292,7 +297,7 @@ def raster_fwd(
                         out_dvdf[py, px, ch] = s1[ch, p] - delta * s0[p]
 
 
-@numba.njit(parallel=True, cache=True, fastmath=FASTMATH)
+@numba.njit(parallel=True, cache=True, fastmath=FASTMATH_REDUCE)
 def raster_bwd(
     means2d, conics, opacities, feats, variances, rects, tile_start, isect_gauss,
     xs, ys, consts, n_chunks, full_grad, want_appearance, out_feat, out_trans, out_dvdf, out_last,
@@ -303,8 +308,13 @@ def raster_bwd(
     ``slots[k]`` receives the gradient of intersection ``k`` with respect to
     (mean x, mean y, conic a, b, c, opacity, features ×4, v). ``full_grad`` adds the dependence
     of ``T_i²`` in the variances on the alphas in front of Gaussian i (dropped by the authors).
-    Without ``want_appearance`` (pose-only tracking) the colour, opacity and ``v`` entries are
-    left at zero; the geometric entries (mean, conic, depth feature) are computed identically.
+    Without ``want_appearance`` (pose-only tracking) the colour entries are left at zero and
+    the opacity and ``v`` entries are computed but not needed.
+
+    Like the forward, each Gaussian is processed over the tile-wide rows of its bounding box by
+    branch-free loops over lanes (masks as selects; masked lanes contribute exact zeros); the
+    slot sums are vectorised reductions, whose order depends only on the compiled code and the
+    span length, never on the thread count.
     """
     height, width = out_trans.shape
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
@@ -314,37 +324,53 @@ def raster_bwd(
     half, one, two, zero = consts[K_HALF], consts[K_ONE], consts[K_TWO], consts[K_ZERO]
     r_weight = two if full_grad else zero  # ∂T_i²/∂α_j enters ∂L/∂α_j only in the full gradient
     for chunk in numba.prange(n_chunks):
-        trans = np.empty(TILE_PIXELS, feats.dtype)
-        t_final = np.empty(TILE_PIXELS, feats.dtype)
-        last = np.empty(TILE_PIXELS, np.int64)
-        g_alpha = np.empty(TILE_PIXELS, feats.dtype)
-        r_sum = np.empty(TILE_PIXELS, feats.dtype)
-        fin = np.empty((TILE_PIXELS, N_FEAT), feats.dtype)
-        g_fin = np.empty((TILE_PIXELS, N_FEAT), feats.dtype)
-        g_v = np.empty((TILE_PIXELS, N_FEAT), feats.dtype)
+        lane_x = np.empty(TILE_PIXELS, feats.dtype)
+        lane_y = np.empty(TILE_PIXELS, feats.dtype)
+        trans = np.empty(TILE_PIXELS, feats.dtype)  # T_{i+1}, then T_i while walking back
+        last = np.empty(TILE_PIXELS, np.int32)
+        g_final = np.empty(TILE_PIXELS, feats.dtype)  # ∂L/∂A · T_final
         g_behind = np.empty(TILE_PIXELS, feats.dtype)  # Σ_{j behind} w_j ⟨∂L/∂F, f_j⟩
+        r_sum = np.empty(TILE_PIXELS, feats.dtype)  # Σ_{j behind} q_j u_j
+        fin = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
+        g_fin = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
+        g_v = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
+        gauss = np.empty(TILE_PIXELS, feats.dtype)  # σ, then e^-σ
+        alphas = np.empty(TILE_PIXELS, feats.dtype)  # masked α
+        inverse = np.empty(TILE_PIXELS, feats.dtype)  # 1 / (1 − α)
+        t_front = np.empty(TILE_PIXELS, feats.dtype)  # T_i
+        weights = np.empty(TILE_PIXELS, feats.dtype)  # w = α T_i
+        moments = np.empty(TILE_PIXELS, feats.dtype)  # u = v T_i², 0 where not blended
+        squares = np.empty(TILE_PIXELS, feats.dtype)  # T_i², 0 where not blended
+        q_var = np.empty(TILE_PIXELS, feats.dtype)  # q = Σ_ch ∂L/∂V (f − F)²
+        g_dot_f = np.empty(TILE_PIXELS, feats.dtype)  # ⟨∂L/∂F, f_i⟩
         for tile in range(chunk, n_tiles, n_chunks):
             px0 = (tile % tiles_x) * TILE_SIZE
             py0 = (tile // tiles_x) * TILE_SIZE
             px1 = min(px0 + TILE_SIZE, width)
             py1 = min(py0 + TILE_SIZE, height)
+            tile_lanes(xs, ys, px0, py0, lane_x, lane_y)
+            trans[:] = one
+            last[:] = -1  # lanes past the image border never match
+            g_final[:] = zero
+            g_behind[:] = zero
+            r_sum[:] = zero
+            fin[:] = zero
+            g_fin[:] = zero
+            g_v[:] = zero
             k_end = tile_start[tile]  # one past the last contributor of the tile
             for py in range(py0, py1):
                 for px in range(px0, px1):
                     p = (py - py0) * TILE_SIZE + px - px0
                     trans[p] = out_trans[py, px]
-                    t_final[p] = out_trans[py, px]
                     last[p] = out_last[py, px]
-                    k_end = max(k_end, last[p] + 1)
-                    g_alpha[p] = grad_alpha[py, px]
-                    r_sum[p] = zero
-                    g_behind[p] = zero
+                    k_end = max(k_end, out_last[py, px] + 1)
+                    g_final[p] = grad_alpha[py, px] * out_trans[py, px]
                     for ch in range(N_FEAT):
-                        fin[p, ch] = out_feat[py, px, ch]
-                        g_v[p, ch] = grad_var[py, px, ch]
+                        fin[ch, p] = out_feat[py, px, ch]
+                        g_v[ch, p] = grad_var[py, px, ch]
                         # V depends on F: ∂V/∂F = −2 Σ v_i T_i² (f_i − F).
-                        g_fin[p, ch] = (
-                            grad_feat[py, px, ch] - two * g_v[p, ch] * out_dvdf[py, px, ch]
+                        g_fin[ch, p] = (
+                            grad_feat[py, px, ch] - two * g_v[ch, p] * out_dvdf[py, px, ch]
                         )
             for k in range(k_end, tile_start[tile + 1]):  # behind every pixel's last contributor
                 for e in range(N_SLOT):
@@ -354,62 +380,66 @@ def raster_bwd(
                 mx, my = means2d[g, 0], means2d[g, 1]
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 o, v = opacities[g], variances[g]
-                f0, f1, f2, f3 = feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3]
-                # Slot sums in registers (an array here is reloaded after every store).
+                x0, x1 = xs[rects[g, 0]], xs[rects[g, 1]]
+                p0 = (max(rects[g, 2], py0) - py0) * TILE_SIZE
+                p1 = (min(rects[g, 3] + 1, py1) - py0) * TILE_SIZE
+                n = p1 - p0
+                lx, ly, gs = lane_x[p0:p1], lane_y[p0:p1], gauss[p0:p1]
+                sigma_rows(lx, ly, mx, my, a, b, c, sigma_max, half, gs)
+                exp_neg_rows(gs, fast_exp, consts)
+                al, tr, ls = alphas[p0:p1], trans[p0:p1], last[p0:p1]
+                iv, ti, wt = inverse[p0:p1], t_front[p0:p1], weights[p0:p1]
+                mo, sq, qv, gd = moments[p0:p1], squares[p0:p1], q_var[p0:p1], g_dot_f[p0:p1]
+                kk = np.int32(k)
+                for j in range(n):
+                    alpha = min(alpha_max, o * gs[j])
+                    hit = (lx[j] >= x0) & (lx[j] <= x1) & (ls[j] >= kk) & (alpha >= alpha_min)
+                    al[j] = alpha if hit else zero
+                for j in range(n):  # T_i = T_{i+1} / (1 − α_i); unchanged where not blended
+                    inv = one / (one - al[j])
+                    iv[j] = inv
+                    ti[j] = tr[j] * inv
+                    tr[j] = tr[j] * inv
+                for j in range(n):
+                    wt[j] = al[j] * ti[j]
+                    sq[j] = ti[j] * ti[j] if al[j] > zero else zero
+                    mo[j] = v * sq[j]
+                qv[:] = zero
+                gd[:] = zero
+                for ch in range(N_FEAT):  # a runtime bound: no unrolling, less JIT
+                    f = feats[g, ch]
+                    fi, gfi, gvi = fin[ch, p0:p1], g_fin[ch, p0:p1], g_v[ch, p0:p1]
+                    for j in range(n):
+                        d = f - fi[j]
+                        qv[j] += gvi[j] * d * d
+                        gd[j] += gfi[j] * f
+                    s_f = zero
+                    if want_appearance or ch == N_FEAT - 1:
+                        for j in range(n):
+                            s_f += wt[j] * gfi[j] + two * gvi[j] * mo[j] * (f - fi[j])
+                    slots[k, S_FEAT + ch] = s_f
                 s_mx = s_my = s_ca = s_cb = s_cc = s_op = s_v = zero
-                s_f0 = s_f1 = s_f2 = s_f3 = zero
-                for py in range(max(rects[g, 2], py0), min(rects[g, 3] + 1, py1)):
-                    dy = ys[py] - my
-                    row = (py - py0) * TILE_SIZE - px0
-                    for px in range(max(rects[g, 0], px0), min(rects[g, 1] + 1, px1)):
-                        p = row + px
-                        if k > last[p]:
-                            continue
-                        dx = xs[px] - mx
-                        sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-                        if sigma > sigma_max:
-                            continue
-                        gauss = exp_neg(sigma, fast_exp, consts)
-                        raw = o * gauss
-                        alpha = min(alpha_max, raw)
-                        if alpha < alpha_min:
-                            continue
-                        inv = one / (one - alpha)
-                        t_i = trans[p] * inv
-                        w = alpha * t_i
-                        u = v * t_i * t_i
-                        d0, d1 = f0 - fin[p, 0], f1 - fin[p, 1]
-                        d2, d3 = f2 - fin[p, 2], f3 - fin[p, 3]
-                        gv0, gv1, gv2, gv3 = g_v[p, 0], g_v[p, 1], g_v[p, 2], g_v[p, 3]
-                        gf0, gf1, gf2, gf3 = g_fin[p, 0], g_fin[p, 1], g_fin[p, 2], g_fin[p, 3]
-                        s_f3 += w * gf3 + two * gv3 * u * d3
-                        q = gv0 * d0 * d0 + gv1 * d1 * d1 + gv2 * d2 * d2 + gv3 * d3 * d3
-                        if want_appearance:
-                            s_f0 += w * gf0 + two * gv0 * u * d0
-                            s_f1 += w * gf1 + two * gv1 * u * d1
-                            s_f2 += w * gf2 + two * gv2 * u * d2
-                            s_v += t_i * t_i * q
-                        g_dot_f = gf0 * f0 + gf1 * f1 + gf2 * f2 + gf3 * f3
-                        # ∂F/∂α_i = f_i T_i − (Σ_{j>i} f_j w_j)/(1 − α_i), dotted with ∂L/∂F.
-                        d_alpha = t_i * g_dot_f + (g_alpha[p] * t_final[p] - g_behind[p]) * inv
-                        d_alpha -= r_weight * r_sum[p] * inv  # no branch: half the JIT time
-                        g_behind[p] += w * g_dot_f
-                        r_sum[p] += q * u
-                        trans[p] = t_i
-                        if raw < alpha_max:
-                            if want_appearance:
-                                s_op += d_alpha * gauss
-                            d_sigma = -d_alpha * raw
-                            s_mx -= d_sigma * (a * dx + b * dy)
-                            s_my -= d_sigma * (b * dx + c * dy)
-                            s_ca += d_sigma * half * dx * dx
-                            s_cb += d_sigma * dx * dy
-                            s_cc += d_sigma * half * dy * dy
+                gb, rs, gfl = g_behind[p0:p1], r_sum[p0:p1], g_final[p0:p1]
+                for j in range(n):
+                    # ∂F/∂α_i = f_i T_i − (Σ_{j>i} f_j w_j)/(1 − α_i), dotted with ∂L/∂F.
+                    d_alpha = ti[j] * gd[j] + (gfl[j] - gb[j] - r_weight * rs[j]) * iv[j]
+                    gb[j] += wt[j] * gd[j]
+                    rs[j] += qv[j] * mo[j]
+                    raw = o * gs[j]
+                    d_alpha = d_alpha if (al[j] > zero) & (raw < alpha_max) else zero
+                    s_op += d_alpha * gs[j]
+                    s_v += sq[j] * qv[j]
+                    d_sigma = -d_alpha * raw
+                    dx = lx[j] - mx
+                    dy = ly[j] - my
+                    s_mx -= d_sigma * (a * dx + b * dy)
+                    s_my -= d_sigma * (b * dx + c * dy)
+                    s_ca += d_sigma * half * dx * dx
+                    s_cb += d_sigma * dx * dy
+                    s_cc += d_sigma * half * dy * dy
                 slots[k, S_MEAN], slots[k, S_MEAN + 1] = s_mx, s_my
                 slots[k, S_CONIC], slots[k, S_CONIC + 1], slots[k, S_CONIC + 2] = s_ca, s_cb, s_cc
                 slots[k, S_OPACITY], slots[k, S_VAR] = s_op, s_v
-                slots[k, S_FEAT], slots[k, S_FEAT + 1] = s_f0, s_f1
-                slots[k, S_FEAT + 2], slots[k, S_FEAT + 3] = s_f2, s_f3
 
 
 @numba.njit(parallel=True, cache=True)
