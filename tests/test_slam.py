@@ -17,7 +17,6 @@ from converters.tum import TumOptions, plan_tum
 from jobs.run import run_job
 from outputs.trajectory import read_tum
 
-
 CORES = 2
 
 
