@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -292,37 +293,136 @@ def demo(ctx: click.Context, workdir: Path, frames: int, size: tuple[int, int]) 
     run_demo(config, show_progress=_show_progress(ctx))
 
 
+def _frame_options(command: Callable) -> Callable:
+    """Options `export` and `eval` share: the store, the resolution, LPIPS weights."""
+    for option in reversed((
+        click.option("--store", type=click.Path(path_type=Path),
+                     help="The job's frame store (images, ground truth) [default: the store "
+                          "recorded in JOB/job.json, if still there]."),
+        click.option("--downscale", type=click.IntRange(min=1),
+                     help="Render and evaluate at input resolution / N [default: the run's "
+                          "mapping resolution, where the SLAM computed its variances]."),
+        click.option("--lpips-weights", multiple=True, type=click.Path(path_type=Path),
+                     help="LPIPS weights (state dict; repeatable to merge a torchvision "
+                          "backbone with lpips's linear heads). Without it LPIPS is not "
+                          "computed; nothing is ever downloaded."),
+    )):  # fmt: skip
+        command = option(command)
+    return command
+
+
+def _print_export(report, brief_in: Path | None = None) -> None:  # noqa: ANN001 - ExportReport
+    """What an export wrote (or, with `brief_in`, one line naming the files of that folder) and
+    its headline metrics."""
+    if brief_in is not None:
+        names = sorted({p.relative_to(brief_in).parts[0] for p in report.files})
+        click.echo(f"exported into {brief_in}: {', '.join(names)}")
+    for path in [] if brief_in is not None else report.files:
+        count = report.gaussians.get(path.name)
+        click.echo(f"wrote {path}" + ("" if count is None else f" ({count} Gaussians)"))
+    for alignment, stats in report.ate.items():
+        rmse = "n/a (degenerate)" if math.isnan(stats["rmse"]) else f"{stats['rmse'] * 100:.2f} cm"
+        click.echo(f"ATE RMSE ({alignment.replace('_', ' ')}): {rmse} "
+                   f"over {stats['frames']} frames")  # fmt: skip
+    metrics = report.metrics
+    if metrics:
+        r, u = metrics["rendering"], metrics["uncertainty"]
+        line = f"keyframes: PSNR {r['psnr_db']:.2f} dB, SSIM {r['ssim']:.3f}"
+        if r["depth_l1_cm"] is not None:
+            line += f", depth L1 {r['depth_l1_cm']:.2f} cm"
+        if u is not None:
+            line += (f", AUSE-MAE colour {u['ause_mae_color']['ause_raw']:.4f}, depth "
+                     f"{u['ause_mae_depth']['ause_raw']:.4f} m (raw)")  # fmt: skip
+        click.echo(line)
+
+
+def _run_export(ctx: click.Context, job: Path, options, brief: bool = False) -> None:  # noqa: ANN001
+    from bgs_batch.progress import progress_bar
+    from outputs.export import export_job, frames_to_render
+    from outputs.jobfiles import FinishedJob
+
+    count = 0
+    if options.uncertainty or options.renders or options.report:
+        images, metrics = frames_to_render(FinishedJob(job, options.store), options)
+        count = len(set(images) | set(metrics))
+    with progress_bar("rendering", count, _show_progress(ctx) and count > 0) as advance:
+        report = export_job(job, options, progress=advance)
+    _print_export(report, job / "outputs" if brief else None)
+
+
 @main.command()
 @click.argument("job", type=click.Path(path_type=Path))
 @click.option("--ply", is_flag=True, help="Write the submap and merged-map PLY files.")
 @click.option("--trajectory", is_flag=True,
               help="Write the trajectories (TUM and KITTI; aligned and GT when GT exists).")
-@click.option("--store", type=click.Path(path_type=Path),
-              help="The job's frame store, for ground truth (aligned estimate, GT files, ATE) "
-                   "[default: the store recorded in JOB/job.json, if still there].")
-def export(job: Path, ply: bool, trajectory: bool, store: Path | None) -> None:
-    """Write a finished job's maps and trajectories into JOB/outputs (all when no flag is given).
+@click.option("--uncertainty", is_flag=True,
+              help="Write uncertainty.h5 (renders, variances, residuals; float32) and "
+                   "colour-mapped PNGs with colour bars.")
+@click.option("--renders", is_flag=True,
+              help="Write rendered colour (8-bit PNG) and depth (16-bit PNG, 5000 per m).")
+@click.option("--report", is_flag=True,
+              help="Evaluate (metrics.json, as `bgs eval`) and write report.html with its plots.")
+@click.option("--frames", "which", type=click.Choice(["keyframes", "all"]), default="keyframes",
+              show_default=True, help="Frames of the uncertainty images and renders.")
+@click.option("--stride", default=1, show_default=True, type=click.IntRange(min=1),
+              help="Keep every STRIDE-th of those frames.")
+@_frame_options
+@click.pass_context
+def export(ctx: click.Context, job: Path, ply: bool, trajectory: bool, uncertainty: bool,
+           renders: bool, report: bool, which: str, stride: int, store: Path | None,
+           downscale: int | None, lpips_weights: tuple[Path, ...]) -> None:  # fmt: skip
+    """Write a finished job's outputs into JOB/outputs (all of them when no flag is given).
 
     PLY files use the INRIA 3DGS layout (opacity logit, log scales, w-first quaternion, SH DC)
     plus a float `uncertainty` property; trajectories are camera-to-world, TUM and KITTI. The
     aligned estimate is rigidly aligned to GT (rotation + translation, no scale), as
-    `evo_ape tum gt.tum estimate.tum -a`.
+    `evo_ape tum gt.tum estimate.tum -a`. Uncertainty images are re-rendered from the saved
+    submaps, poses and sensor network with the SLAM's own variance formula. Every file is
+    written under a temporary name and renamed when complete.
 
     \b
     Example:
       bgs export jobs/fr1_rpy --store fr1_rpy.h5
+      bgs export jobs/fr1_rpy --uncertainty --frames all --stride 5
       bgs export jobs/fr1_rpy --ply
     """
-    from outputs.export import export_job
+    from outputs.export import ExportOptions
 
-    both = not (ply or trajectory)
-    report = export_job(job, ply=ply or both, trajectory=trajectory or both, store=store)
-    for path in report.files:
-        count = report.gaussians.get(path.name)
-        click.echo(f"wrote {path}" + ("" if count is None else f" ({count} Gaussians)"))
-    for alignment, stats in report.ate.items():
-        click.echo(f"ATE RMSE ({alignment.replace('_', ' ')}): {stats['rmse'] * 100:.2f} cm "
-                   f"over {stats['frames']} frames")  # fmt: skip
+    everything = not (ply or trajectory or uncertainty or renders or report)
+    options = ExportOptions(
+        ply=ply or everything, trajectory=trajectory or everything,
+        uncertainty=uncertainty or everything, renders=renders or everything,
+        metrics=report or everything, report=report or everything, frames=which,
+        stride=stride, downscale=downscale, lpips_weights=lpips_weights, store=store,
+    )  # fmt: skip
+    _run_export(ctx, job, options)
+
+
+@main.command("eval")
+@click.argument("job", type=click.Path(path_type=Path))
+@click.option("--no-report", is_flag=True, help="Write metrics.json only (no report.html).")
+@_frame_options
+@click.pass_context
+def evaluate(ctx: click.Context, job: Path, no_report: bool, store: Path | None,
+             downscale: int | None, lpips_weights: tuple[Path, ...]) -> None:  # fmt: skip
+    """Evaluate a finished job: JOB/outputs/metrics.json and report.html.
+
+    ATE (rigid and with-scale alignment), PSNR, SSIM, MS-SSIM, depth L1 and (with
+    --lpips-weights) LPIPS on the keyframes, AUSE-MAE of colour and depth (raw and normalised,
+    with the sparsification curves), keyframes, mapping calls and time per stage. metrics.json
+    states every convention. The report embeds its plots and a gallery of uncertainty images.
+
+    \b
+    Example:
+      bgs eval jobs/fr1_rpy
+      bgs eval jobs/fr1_rpy --downscale 1 --lpips-weights lpips_alex.pth
+    """
+    from outputs.export import ExportOptions
+
+    options = ExportOptions(ply=False, trajectory=False, uncertainty=False, renders=False,
+                            metrics=True, report=not no_report, downscale=downscale,
+                            lpips_weights=lpips_weights, store=store)  # fmt: skip
+    _run_export(ctx, job, options)
 
 
 @main.command()
@@ -336,16 +436,20 @@ def export(job: Path, ply: bool, trajectory: bool, store: Path | None) -> None:
 @click.option("--max-frames", type=click.IntRange(min=1), help="Process only the first N frames.")
 @click.option("--force", is_flag=True,
               help="Reuse JOB_DIR although it was made for another store or other settings.")
+@click.option("--no-export", is_flag=True,
+              help="Skip the default export at the end (PLY, trajectories, uncertainty images "
+                   "of the keyframes, metrics.json, report.html; see `bgs export`).")
 @click.pass_context
 def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: tuple[str, ...],
-        max_frames: int | None, force: bool) -> None:  # fmt: skip
+        max_frames: int | None, force: bool, no_export: bool) -> None:  # fmt: skip
     """Run uncertainty-aware Gaussian-splatting SLAM on a frame store.
 
     Writes config.json, log.jsonl (one event per frame: pose, keyframe decision with both
     surprise scores, losses), trajectory.txt (TUM format), submaps/ and summary.json into
     JOB_DIR. Ground truth in the store is only used afterwards, for the ATE in the summary.
     Checkpoints every `checkpoint_every` frames; SIGTERM/SIGUSR1/Ctrl-C checkpoint and exit 75,
-    and running the same command again resumes.
+    and running the same command again resumes. When the run is complete, its outputs are
+    exported into JOB_DIR/outputs (once; `--no-export` skips this, `bgs export` redoes it).
 
     \b
     Example:
@@ -373,6 +477,23 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
     ate = "n/a (no GT)" if summary.ate_rmse_m is None else f"{summary.ate_rmse_m * 100:.2f} cm"
     click.echo(f"{summary.frames} frames, {summary.keyframes} keyframes, {summary.fps:.2f} fps, "
                f"ATE RMSE {ate}; outputs in {job_dir}")  # fmt: skip
+    if not no_export:
+        _default_export(ctx, job_dir)
+
+
+def _default_export(ctx: click.Context, job_dir: Path) -> None:
+    """The end-of-run export, unless a complete one is newer than the run's summary."""
+    from outputs.export import RUN_DEFAULTS, export_is_current
+
+    if export_is_current(job_dir):
+        click.echo(f"outputs in {job_dir / 'outputs'} are up to date")
+        return
+    try:
+        _run_export(ctx, job_dir, RUN_DEFAULTS, brief=True)  # the store recorded in job.json
+    except BgsError as err:
+        err.args = (f"the run finished, but its export failed: {err}; fix this and run "
+                    f"`bgs export {job_dir}` (or pass --no-export)",)  # fmt: skip
+        raise
 
 
 @main.command()

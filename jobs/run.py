@@ -11,6 +11,8 @@ Job directory::
     sensor_net.pt    the trained sensor-noise network (state dict)
     summary.json     frames, keyframes, mapping calls, fps, time per stage, ATE when GT exists
     error.json       the exception that stopped the last run, if any
+    outputs/         written afterwards by `bgs export` / `bgs eval` (`outputs.export`); `bgs run`
+                     runs the default export itself when the run is complete
 """
 
 from __future__ import annotations

@@ -81,6 +81,26 @@ def depth_sparsification(rendered: np.ndarray, measured: np.ndarray, variance: n
     return sparsification(np.asarray(variance, np.float64).reshape(shape)[valid], error[valid])
 
 
+def depth_sparsifications(
+    rendered: np.ndarray, measured: np.ndarray, variances: dict[str, np.ndarray]
+) -> dict[str, Sparsification]:
+    """`depth_sparsification` of several uncertainties of one frame, sharing the oracle curve."""
+    shape = measured.shape[:2]
+    error = np.abs(np.asarray(rendered, np.float64).reshape(shape)
+                   - np.asarray(measured, np.float64).reshape(shape))  # fmt: skip
+    valid = _valid_depth(measured)
+    error = error[valid]
+    if len(error) == 0:
+        raise ValueError("no pixel with valid measured depth")
+    oracle = _kept_mae(np.sort(error))
+    out = {}
+    for name, variance in variances.items():
+        uncertainty = np.asarray(variance, np.float64).reshape(shape)[valid]
+        by_uncertainty = _kept_mae(error[np.argsort(uncertainty, kind="stable")])
+        out[name] = Sparsification(oracle, by_uncertainty, *_area(oracle, by_uncertainty))
+    return out
+
+
 def mean_over_frames(frames: list[Sparsification]) -> Sparsification:
     """The mean curves and the mean of the per-frame AUSE values."""
     if not frames:

@@ -1,145 +1,333 @@
-"""`bgs export`: turn a job directory into files other tools open (``JOB/outputs/``).
+"""`bgs export` / `bgs eval`: turn a finished job directory into files other tools open.
 
-Written::
+Written into ``JOB/outputs/``::
 
-    outputs/ply/submap_XXXXXX.ply   one PLY per submap (INRIA 3DGS layout, see `outputs.ply`)
-    outputs/ply/global.ply          all submaps merged, near-duplicates thinned
-    outputs/trajectory/             estimate.{tum,kitti}, times.txt; with the frame store's
-                                    ground truth also estimate_aligned.* and gt.*
+    ply/submap_XXXXXX.ply   one PLY per submap (INRIA 3DGS layout, see `outputs.ply`)
+    ply/global.ply          all submaps merged, near-duplicates thinned
+    trajectory/             estimate.{tum,kitti}, times.txt; with the frame store's ground truth
+                            also estimate_aligned.{tum,kitti} and gt.{tum,kitti}
+    uncertainty.h5          per-frame renders, variances, residuals (`outputs.uncertainty_h5`)
+    uncertainty/<quantity>/ colour-mapped PNGs with colour bars (`outputs.uncertainty_images`)
+    renders/{rgb,depth}/    rendered colour (8-bit) and depth (16-bit PNG, 5000 per m)
+    metrics.json            ATE, rendering and uncertainty metrics, run statistics, conventions
+    report.html             self-contained report (images embedded)
+    report/                 the report's PNGs
 
-Each of the two folders is replaced as a whole, so no file of an earlier export lingers. Ground
-truth comes from the store given, else from the store recorded in ``job.json`` when it is still
-there and has GT.
+Every file and folder is built under a temporary name and renamed when complete
+(`outputs.atomic`), so an interrupted or failed export leaves the previous outputs intact and
+no half-written file; a folder is replaced as a whole, so no file of an earlier export lingers.
+Everything an export needs is checked before anything is written. Frames are rendered once and
+shared by the uncertainty images, the renders and the metrics.
 """
 
 from __future__ import annotations
 
 import json
-import shutil
+from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-import torch
 
 from bgs_batch.errors import InputError
-from bgs_batch.gaussian_map import PARAMS
-from bgs_batch.store import FrameStore
-from jobs.jobdir import JOB_FILE, lock_owner_alive
+from outputs import plots
+from outputs.atomic import atomic_dir, atomic_file
+from outputs.colormap import write_png
+from outputs.evaluate import (
+    MIN_ALIGNED_FRAMES,
+    FrameEvaluator,
+    TrajectoryEvaluation,
+    build_metrics,
+    evaluate_trajectory,
+    run_statistics,
+)
+from outputs.jobfiles import FinishedJob, incomplete
+from outputs.lpips import Lpips, load_lpips
 from outputs.ply import Splats, merge_submaps, write_ply
-from outputs.trajectory import match_timestamps, read_tum, write_trajectories
+from outputs.report import write_report
+from outputs.trajectory import write_trajectories
+from outputs.uncertainty import FrameUncertainty, UncertaintyRenderer, select_frames
+from outputs.uncertainty_h5 import UncertaintyWriter
+from outputs.uncertainty_images import ImageScales, panel, write_quantities, write_renders
 
-TRAJECTORY_FILE = "trajectory.txt"
-SUBMAP_DIR = "submaps"
-OUTPUT_DIR = "outputs"
+UNCERTAINTY_FILE = "uncertainty.h5"
+METRICS_FILE = "metrics.json"
+REPORT_FILE = "report.html"
+REPORT_DIR = "report"
+GALLERY_FRAMES = 4  # keyframes shown in the report, evenly spaced
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """What to write; `frames`/`stride` choose the frames of the uncertainty images and renders
+    ("keyframes" or "all", then every stride-th); metrics always use the keyframes."""
+
+    ply: bool = True
+    trajectory: bool = True
+    uncertainty: bool = True
+    renders: bool = True
+    metrics: bool = True  # metrics.json
+    report: bool = True  # report.html and report/ (implies metrics)
+    frames: str = "keyframes"
+    stride: int = 1
+    downscale: int | None = None  # None: the run's mapping resolution
+    lpips_weights: tuple[Path, ...] = ()
+    store: Path | None = None
+
+    def __post_init__(self) -> None:
+        if self.report and not self.metrics:
+            raise ValueError("a report needs the metrics")
+        if self.frames not in ("keyframes", "all") or self.stride < 1:
+            raise ValueError(f"frames {self.frames!r}, stride {self.stride}: invalid")
+
+
+# what `bgs run` exports when it ends (no PNG renders: the HDF5 file holds them)
+RUN_DEFAULTS = ExportOptions(renders=False)
+
+
+def export_is_current(job_dir: Path) -> bool:
+    """True when the outputs of a default export are complete and newer than the run."""
+    summary = Path(job_dir) / "summary.json"
+    outputs = Path(job_dir) / "outputs"
+    needed = [outputs / name for name in ("ply", "trajectory", METRICS_FILE, REPORT_FILE)]
+    if not summary.is_file() or not all(p.exists() for p in needed):
+        return False
+    return min(p.stat().st_mtime for p in needed) >= summary.stat().st_mtime
 
 
 @dataclass
 class ExportReport:
-    """What `export_job` wrote: paths, Gaussian counts and ATE statistics (when GT exists)."""
+    """What `export_job` wrote: paths, Gaussian counts, ATE statistics and the metrics."""
 
     files: list[Path] = field(default_factory=list)
     gaussians: dict[str, int] = field(default_factory=dict)
     ate: dict[str, dict[str, float]] = field(default_factory=dict)
+    metrics: dict[str, Any] | None = None
 
 
-def _incomplete(job_dir: Path, what: str) -> InputError:
-    return InputError(f"{job_dir} is not a finished job directory: {what}; "
-                      "run `bgs run STORE --job-dir JOB` to completion first")  # fmt: skip
-
-
-def load_submaps(job_dir: Path) -> list[Splats]:
-    """The job's frozen submaps in order, as `Splats` (world coordinates, no correction)."""
-    paths = sorted((job_dir / SUBMAP_DIR).glob("*.pt"))
-    if not paths:
-        raise _incomplete(job_dir, f"no {SUBMAP_DIR}/*.pt files")
-    submaps = []
-    for path in paths:
-        try:
-            params = torch.load(path, weights_only=True)["params"]
-            submaps.append(Splats.from_params({name: params[name] for name in PARAMS}))
-        except Exception as err:  # torch.load raises many types (IndexError too) on damaged files
-            raise _incomplete(job_dir, f"{path.name} is unreadable or lacks a parameter ({err})"
-                              ) from err  # fmt: skip
-    return submaps
-
-
-def _fresh_dir(path: Path) -> Path:
-    if path.exists():
-        shutil.rmtree(path)
-    path.mkdir(parents=True)
-    return path
-
-
-def export_ply(job_dir: Path, report: ExportReport) -> None:
+def export_ply(job: FinishedJob, report: ExportReport) -> None:
     """One PLY per submap and the merged global map, into ``outputs/ply``."""
-    submaps = load_submaps(job_dir)
-    out = _fresh_dir(job_dir / OUTPUT_DIR / "ply")
+    submaps = [Splats.from_params(job.submap_params(p)) for p in job.submap_paths()]
     named = [(f"submap_{i:06d}.ply", s) for i, s in enumerate(submaps)]
-    for name, splats in [*named, ("global.ply", merge_submaps(submaps))]:
-        report.gaussians[name] = write_ply(out / name, splats)
-        report.files.append(out / name)
+    with atomic_dir(job.outputs / "ply") as tmp:
+        for name, splats in [*named, ("global.ply", merge_submaps(submaps))]:
+            report.gaussians[name] = write_ply(tmp / name, splats)
+    report.files.extend(job.outputs / "ply" / name for name, _ in named)
+    report.files.append(job.outputs / "ply" / "global.ply")
 
 
-def _ground_truth(store: Path, timestamps: np.ndarray) -> np.ndarray | None:
-    """The store's GT poses at `timestamps` (NaN where unknown); None if it has no GT."""
-    with FrameStore(store) as opened:
-        if not opened.has_gt:
-            return None
-        index = match_timestamps(timestamps, opened.timestamps)
-        poses = opened.poses_gt
-    if not np.any(index >= 0):
-        raise InputError(f"no frame of the job is in {store}: is it the job's store?")
-    return np.where((index >= 0)[:, None, None], poses[index], np.nan)
-
-
-def _recorded_store(job_dir: Path) -> Path | None:
-    """The store named in ``job.json`` if that file still exists (older jobs have no record)."""
-    record = job_dir / JOB_FILE
-    if not record.is_file():
-        return None
-    store = Path(json.loads(record.read_text())["store"]["path"])
-    return store if store.is_file() else None
-
-
-def export_trajectories(job_dir: Path, report: ExportReport, store: Path | None = None) -> None:
+def export_trajectories(job: FinishedJob, report: ExportReport) -> None:
     """Estimate (and with ground truth the aligned estimate and GT) into ``outputs/trajectory``.
 
-    GT comes from `store` (an error if it has none), else from the job's recorded store when it
-    is still there and has GT; GT poses are matched to the estimate by timestamp."""
-    path = job_dir / TRAJECTORY_FILE
-    if not path.is_file():
-        raise _incomplete(job_dir, f"{TRAJECTORY_FILE} is missing")
-    try:
-        timestamps, estimate = read_tum(path)
-    except ValueError as err:
-        raise _incomplete(job_dir, f"{TRAJECTORY_FILE} is not a TUM trajectory ({err})") from err
-    if len(timestamps) == 0:
-        raise _incomplete(job_dir, f"{TRAJECTORY_FILE} holds no poses")
-    explicit = store is not None
-    store = store if explicit else _recorded_store(job_dir)
-    ground_truth = None if store is None else _ground_truth(store, timestamps)
-    if explicit and ground_truth is None:
-        raise InputError(f"{store} has no ground-truth poses; leave out --store")
-    out = _fresh_dir(job_dir / OUTPUT_DIR / "trajectory")
-    try:
-        report.ate = write_trajectories(out, timestamps, estimate, ground_truth)
-    except ValueError as err:
-        raise InputError(f"cannot compare {path} with the ground truth of {store}: {err}"
-                         ) from err  # fmt: skip
-    report.files.extend(sorted(out.iterdir()))
+    GT comes from ``--store`` (an error if it has none or too little), else from the job's
+    recorded store when it is still there and has GT for at least three frames; GT poses are
+    matched to the estimate by timestamp."""
+    timestamps, estimate = job.trajectory()
+    ground_truth = job.ground_truth(timestamps)
+    known = np.all(np.isfinite(estimate), axis=(1, 2))
+    if ground_truth is not None and job.explicit_store is None:
+        known &= np.all(np.isfinite(ground_truth), axis=(1, 2))
+        if known.sum() < MIN_ALIGNED_FRAMES:  # too little GT in the recorded store: no alignment
+            ground_truth = None
+    with atomic_dir(job.outputs / "trajectory") as tmp:
+        try:
+            report.ate = write_trajectories(tmp, timestamps, estimate, ground_truth)
+        except ValueError as err:
+            raise InputError(f"cannot compare {job.job_dir}/trajectory.txt with the ground truth "
+                             f"of {job.store_path()}: {err}") from err  # fmt: skip
+        names = sorted(p.name for p in tmp.iterdir())
+    report.files.extend(job.outputs / "trajectory" / name for name in names)
 
 
-def export_job(job_dir: Path, *, ply: bool = True, trajectory: bool = True,
-               store: Path | None = None) -> ExportReport:  # fmt: skip
-    """Write the requested outputs of a finished job into ``job_dir/outputs``."""
-    if not job_dir.is_dir():
-        raise InputError(f"{job_dir} is not a directory; pass the --job-dir of a `bgs run`")
-    if lock_owner_alive(job_dir):
-        raise InputError(f"{job_dir} is still being written by `bgs run`; export when it ends")
+def _gallery_frames(keyframes: list[int]) -> set[int]:
+    if not keyframes:
+        return set()
+    picks = np.linspace(0, len(keyframes) - 1, min(GALLERY_FRAMES, len(keyframes)))
+    return {keyframes[int(round(k))] for k in picks}
+
+
+def _report_plots(folder: Path, trajectory: TrajectoryEvaluation, evaluator: FrameEvaluator,
+                  job: FinishedJob) -> list[tuple[Path, str]]:  # fmt: skip
+    """The report's plots into `folder`, with captions."""
+    has_gt = trajectory.aligned is not None
+    estimate = (trajectory.aligned if has_gt else trajectory.estimate)[:, :3, 3]
+    gt = trajectory.ground_truth[:, :3, 3] if has_gt else None
+    out = [
+        (plots.trajectory_top(folder / "trajectory_top.png", estimate, gt),
+         "Trajectory, top view (the two axes of largest extent)"),
+        (plots.trajectory_axes(folder / "trajectory_axes.png", trajectory.timestamps, estimate,
+                               gt), "Position per axis over time"),
+    ]  # fmt: skip
+    if has_gt:
+        rmse = trajectory.stats["rigid"]["rmse"]
+        out.append((plots.ate_over_time(folder / "ate_over_time.png", trajectory.timestamps,
+                                        trajectory.errors_m, rmse),
+                    "ATE over time (rigid alignment)"))  # fmt: skip
+    means = evaluator.sparsification_means()
+    if means is not None:
+        colour, depth = means
+        out.append((plots.sparsification(folder / "ause_color.png", "colour sparsification",
+                                         "intensity", {"Sigma_C": colour}),
+                    "Colour sparsification curves (mean over keyframes)"))  # fmt: skip
+        out.append((plots.sparsification(folder / "ause_depth.png", "depth sparsification",
+                                         "m", depth),
+                    "Depth sparsification curves of four variances"))  # fmt: skip
+    out.append((plots.keyframe_timeline(folder / "keyframes.png", job.events,
+                                        job.config.keyframes.threshold),
+                "Keyframe timeline: surprise scores and threshold"))  # fmt: skip
+    stages = {k: v["seconds"] for k, v in run_statistics(job)["stages"].items()}
+    out.append((plots.timing(folder / "timing.png", stages, job.events), "Timing breakdown"))
+    return out
+
+
+def _check_inputs(job: FinishedJob, options: ExportOptions) -> None:
+    """Load (and so validate) the job's files the requested outputs need, before writing."""
+    if options.ply:
+        job.submap_paths()
+    if options.trajectory or options.metrics:
+        job.trajectory()
+    if options.uncertainty or options.renders or options.metrics:
+        events, submaps = job.events, job.submap_paths()
+        if max(e.submap for e in events) >= len(submaps):
+            raise incomplete(job.job_dir, f"log.jsonl names submap {max(e.submap for e in events)}"
+                             f" but submaps/ holds {len(submaps)} files")  # fmt: skip
+    if options.metrics:
+        _ = job.summary
+
+
+def export_job(job_dir: Path, options: ExportOptions = ExportOptions(),
+               progress: Callable[[int], None] | None = None) -> ExportReport:  # fmt: skip
+    """Write the requested outputs of a finished job into ``job_dir/outputs``; `progress(1)` is
+    called after each rendered frame."""
+    job = FinishedJob(job_dir, options.store)
+    _check_inputs(job, options)
+    lpips = None
+    if options.metrics and options.lpips_weights:
+        lpips = load_lpips(list(options.lpips_weights))
     report = ExportReport()
-    if ply:
-        export_ply(job_dir, report)
-    if trajectory:
-        export_trajectories(job_dir, report, store)
+    with ExitStack() as stack:
+        renderer = None
+        if options.uncertainty or options.renders or options.metrics:  # checks store, network
+            store = stack.enter_context(job.open_store())
+            renderer = UncertaintyRenderer(job, store, options.downscale)
+        if options.ply:
+            export_ply(job, report)
+        if options.trajectory:
+            export_trajectories(job, report)
+        if renderer is not None:
+            _export_frames(job, renderer, options, report, lpips, progress)
     return report
+
+
+def frames_to_render(job: FinishedJob, options: ExportOptions) -> tuple[list[int], list[int]]:
+    """(frames of the images, frames of the metrics)."""
+    images = []
+    if options.uncertainty or options.renders:
+        images = select_frames(job, options.frames, options.stride)
+    metrics = select_frames(job, "keyframes") if options.metrics else []
+    return images, metrics
+
+
+class _FrameSinks:
+    """Where one rendered frame goes: HDF5 + PNGs, renders, metrics, report gallery; each
+    folder or file under a temporary name entered on `stack`."""
+
+    def __init__(self, job: FinishedJob, options: ExportOptions, stack: ExitStack,
+                 image_frames: list[int], metric_frames: list[int], lpips: Lpips | None
+                 ) -> None:  # fmt: skip
+        out = job.outputs
+        self.job, self.stack, self.count = job, stack, len(image_frames)
+        self.images, self.metric_frames = set(image_frames), set(metric_frames)
+        self.gallery = _gallery_frames(metric_frames) if options.report else set()
+        self.scales = ImageScales(job.config.uncertainty)
+        unc = options.uncertainty and bool(image_frames)
+        self.h5 = stack.enter_context(atomic_file(out / UNCERTAINTY_FILE)) if unc else None
+        self.pngs = stack.enter_context(atomic_dir(out / "uncertainty")) if unc else None
+        renders = options.renders and bool(image_frames)
+        self.renders = stack.enter_context(atomic_dir(out / "renders")) if renders else None
+        self.report = stack.enter_context(atomic_dir(out / REPORT_DIR)) if options.report else None
+        self.writer: UncertaintyWriter | None = None
+        self.evaluator = FrameEvaluator(lpips)
+        self.gallery_files: list[tuple[Path, str]] = []
+        self.size: tuple[int, int] | None = None  # width, height of the images
+
+    def add(self, item: FrameUncertainty) -> None:
+        self.size = self.size or (item.alpha.shape[1], item.alpha.shape[0])
+        if item.frame in self.images and self.h5 is not None:
+            if self.writer is None:
+                attrs = _h5_attributes(self.job, item)
+                writer = UncertaintyWriter(self.h5, self.count, *item.alpha.shape, attrs)
+                self.writer = self.stack.enter_context(writer)
+            self.writer.add(item)
+            write_quantities(item, self.pngs, self.scales)
+        if item.frame in self.images and self.renders is not None:
+            write_renders(item, self.renders)
+        if item.frame in self.metric_frames:
+            self.evaluator.add(item)
+        if item.frame in self.gallery:
+            path = self.report / f"frame_{item.frame:06d}.png"
+            write_png(path, panel(item, self.scales))
+            caption = (
+                f"frame {item.frame} (keyframe, t = {item.timestamp:.3f} s): colour (top) and "
+                "depth (bottom): measured, rendered, error, variances"
+            )
+            self.gallery_files.append((path, caption))
+
+
+def _export_frames(
+    job: FinishedJob,
+    renderer: UncertaintyRenderer,
+    options: ExportOptions,
+    report: ExportReport,
+    lpips: Lpips | None,
+    progress: Callable[[int], None] | None,
+) -> None:
+    """One pass over the frames feeding every per-frame output, then metrics and report."""
+    image_frames, metric_frames = frames_to_render(job, options)
+    out = job.outputs
+    with ExitStack() as stack:
+        sinks = _FrameSinks(job, options, stack, image_frames, metric_frames, lpips)
+        for index in sorted(set(image_frames) | set(metric_frames)):
+            sinks.add(renderer.frame(index))
+            if progress is not None:
+                progress(1)
+        if options.metrics:
+            trajectory = evaluate_trajectory(job)
+            metrics = build_metrics(job, trajectory, sinks.evaluator, renderer.downscale,
+                                    sinks.size)  # fmt: skip
+            with atomic_file(out / METRICS_FILE) as tmp:
+                tmp.write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
+            report.metrics = metrics
+            report.files.append(out / METRICS_FILE)
+        if options.report:
+            figures = _report_plots(sinks.report, trajectory, sinks.evaluator, job)
+            with atomic_file(out / REPORT_FILE) as tmp:
+                write_report(tmp, metrics, figures, sinks.gallery_files)
+            report.files += [out / REPORT_FILE, out / REPORT_DIR]
+    # leaving the block renamed the temporary files and folders into place
+    if sinks.h5 is not None:
+        report.files += [out / UNCERTAINTY_FILE, out / "uncertainty"]
+    if sinks.renders is not None:
+        report.files.append(out / "renders")
+
+
+def _h5_attributes(job: FinishedJob, item: FrameUncertainty) -> dict[str, Any]:
+    c = item.camera
+    u = job.config.uncertainty
+    return {
+        "job": str(job.job_dir.resolve()),
+        "store": str(job.store_path()),
+        "width": item.alpha.shape[1],
+        "height": item.alpha.shape[0],
+        "downscale": item.downscale,
+        "intrinsics": np.array([c.fx, c.fy, c.cx, c.cy]),
+        "uncertainty": {
+            "map_floor": u.map_floor,
+            "unobserved_alpha": u.unobserved_alpha,
+            "unobserved_variance": u.unobserved_variance,
+            "sensor_min": u.sensor_min,
+            "full_grad": u.full_grad,
+        },
+    }

@@ -45,7 +45,7 @@ def test_export_writes_plys_and_trajectories_with_ground_truth(tmp_path):
     job = tmp_path / "job"
     make_job(job, timestamps, moved @ gt)
 
-    result = run("export", job, "--store", store)
+    result = run("export", job, "--store", store, "--ply", "--trajectory")
     assert result.exit_code == 0, result.output
     assert "ATE RMSE (rigid): 0.00 cm" in result.output
     ply_dir = job / "outputs" / "ply"

@@ -1,0 +1,221 @@
+"""Read a finished job directory (written by `bgs run`, see `jobs.run`) for the exports.
+
+Each accessor loads its file on first use and fails with an `InputError` that names the file and
+the fix, so an export that needs only the submaps works on a job that lacks, say, its log.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bgs_batch.config import Config, config_from_dict
+from bgs_batch.errors import InputError
+from bgs_batch.gaussian_map import PARAMS
+from bgs_batch.store import FrameStore
+from jobs.jobdir import JOB_FILE, lock_owner_alive
+from jobs.run import LOG_FILE, SUMMARY_FILE
+from outputs.trajectory import match_timestamps, read_tum
+
+TRAJECTORY_FILE = "trajectory.txt"
+SUBMAP_DIR = "submaps"
+SENSOR_FILE = "sensor_net.pt"
+CONFIG_FILE = "config.json"
+OUTPUT_DIR = "outputs"
+POSE_ROWS = 3  # log.jsonl stores the top 3×4 of each camera-to-world pose, row-major
+
+
+def incomplete(job_dir: Path, what: str) -> InputError:
+    """The error for a job directory that lacks (a valid) `what`."""
+    return InputError(f"{job_dir} is not a finished job directory: {what}; "
+                      "run `bgs run STORE --job-dir JOB` to completion first")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FrameEvent:
+    """One line of ``log.jsonl``: what the SLAM did with a frame."""
+
+    frame: int
+    timestamp: float
+    keyframe: bool
+    reason: str
+    score_color: float | None
+    score_depth: float | None
+    submap: int
+    c2w: np.ndarray  # (4, 4) float64, as estimated when the frame was processed (loop closure
+    # may correct it later: the final poses are in trajectory.txt, see `FinishedJob.final_poses`)
+    elapsed_s: float | None
+
+    @classmethod
+    def from_json(cls, event: dict[str, Any]) -> FrameEvent:
+        c2w = np.eye(4)
+        c2w[:POSE_ROWS] = np.asarray(event["pose"], np.float64).reshape(POSE_ROWS, 4)
+        return cls(int(event["frame"]), float(event["timestamp"]), bool(event["keyframe"]),
+                   str(event["reason"]), event.get("score_color"), event.get("score_depth"),
+                   int(event["submap"]), c2w, event.get("elapsed_s"))  # fmt: skip
+
+
+class FinishedJob:
+    """A job directory whose run has ended; `store` overrides the store recorded in job.json."""
+
+    def __init__(self, job_dir: Path, store: Path | None = None) -> None:
+        job_dir = Path(job_dir)
+        if not job_dir.is_dir():
+            raise InputError(f"{job_dir} is not a directory; pass the --job-dir of a `bgs run`")
+        if lock_owner_alive(job_dir):
+            raise InputError(f"{job_dir} is still being written by `bgs run`; export when it ends")
+        self.job_dir = job_dir
+        self.explicit_store = None if store is None else Path(store)
+
+    @property
+    def outputs(self) -> Path:
+        return self.job_dir / OUTPUT_DIR
+
+    def _json(self, name: str) -> Any:
+        path = self.job_dir / name
+        if not path.is_file():
+            raise incomplete(self.job_dir, f"{name} is missing")
+        try:
+            return json.loads(path.read_text())
+        except ValueError as err:
+            raise incomplete(self.job_dir, f"{name} is not valid JSON ({err})") from err
+
+    @cached_property
+    def record(self) -> dict[str, Any] | None:
+        """``job.json`` (None for jobs made before it existed)."""
+        return self._json(JOB_FILE) if (self.job_dir / JOB_FILE).is_file() else None
+
+    @cached_property
+    def config(self) -> Config:
+        """The run's resolved settings (job.json, else config.json)."""
+        data = self.record["config"] if self.record else self._json(CONFIG_FILE)
+        return config_from_dict(data)
+
+    @cached_property
+    def summary(self) -> dict[str, Any]:
+        """``summary.json``: written last by `bgs run`, so its presence means the run finished."""
+        return self._json(SUMMARY_FILE)
+
+    @cached_property
+    def events(self) -> list[FrameEvent]:
+        """The per-frame log, in frame order."""
+        path = self.job_dir / LOG_FILE
+        if not path.is_file():
+            raise incomplete(self.job_dir, f"{LOG_FILE} is missing")
+        events = []
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            try:
+                events.append(FrameEvent.from_json(json.loads(line)))
+            except (ValueError, KeyError, TypeError) as err:
+                raise incomplete(self.job_dir, f"{LOG_FILE} line {number} is damaged ({err})"
+                                 ) from err  # fmt: skip
+        if not events or [e.frame for e in events] != list(range(len(events))):
+            raise incomplete(self.job_dir, f"{LOG_FILE} does not list frames 0, 1, 2, … in order")
+        return events
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Timestamps (N,) and camera-to-world poses (N, 4, 4) of ``trajectory.txt``."""
+        path = self.job_dir / TRAJECTORY_FILE
+        if not path.is_file():
+            raise incomplete(self.job_dir, f"{TRAJECTORY_FILE} is missing")
+        try:
+            timestamps, poses = read_tum(path)
+        except ValueError as err:
+            raise incomplete(self.job_dir, f"{TRAJECTORY_FILE} is not a TUM trajectory ({err})"
+                             ) from err  # fmt: skip
+        if len(timestamps) == 0:
+            raise incomplete(self.job_dir, f"{TRAJECTORY_FILE} holds no poses")
+        return timestamps, poses
+
+    def final_poses(self) -> np.ndarray:
+        """Camera-to-world pose of every frame of the log (N, 4, 4) as the run ended: from
+        ``trajectory.txt``, which holds any loop-closure correction, matched by timestamp."""
+        timestamps, poses = self.trajectory()
+        stamps = np.array([e.timestamp for e in self.events])
+        index = match_timestamps(stamps, timestamps)
+        if np.any(index < 0):
+            missing = int(np.flatnonzero(index < 0)[0])
+            raise incomplete(self.job_dir, f"{TRAJECTORY_FILE} has no pose for frame {missing}")
+        return poses[index]
+
+    def submap_paths(self) -> list[Path]:
+        paths = sorted((self.job_dir / SUBMAP_DIR).glob("*.pt"))
+        if not paths:
+            raise incomplete(self.job_dir, f"no {SUBMAP_DIR}/*.pt files")
+        return paths
+
+    def submap_params(self, path: Path) -> dict[str, torch.Tensor]:
+        """The Gaussian parameters (`GaussianMap` layout) of one submap file."""
+        try:
+            params = torch.load(path, weights_only=True)["params"]
+            return {name: params[name] for name in PARAMS}
+        except Exception as err:  # torch.load raises many types (IndexError too) on damaged files
+            raise incomplete(self.job_dir, f"{path.name} is unreadable or lacks a parameter "
+                             f"({err})") from err  # fmt: skip
+
+    def sensor_state(self) -> dict[str, torch.Tensor]:
+        """The trained sensor-noise network's state dict."""
+        path = self.job_dir / SENSOR_FILE
+        if not path.is_file():
+            raise incomplete(self.job_dir, f"{SENSOR_FILE} is missing")
+        try:
+            return torch.load(path, weights_only=True)
+        except Exception as err:
+            raise incomplete(self.job_dir, f"{SENSOR_FILE} is unreadable ({err})") from err
+
+    def recorded_store(self) -> Path | None:
+        """The store named in ``job.json`` if that file still exists."""
+        if self.record is None:
+            return None
+        store = Path(self.record["store"]["path"])
+        return store if store.is_file() else None
+
+    def store_path(self) -> Path:
+        """The frame store to read images from: ``--store``, else the one in job.json."""
+        if self.explicit_store is not None:
+            return self.explicit_store
+        store = self.recorded_store()
+        if store is None:
+            named = self.record["store"]["path"] if self.record else f"no {JOB_FILE}"
+            raise InputError(f"the frame store of {self.job_dir} is not available ({named}); "
+                             "pass it with --store")  # fmt: skip
+        return store
+
+    def open_store(self) -> FrameStore:
+        """The job's frame store, checked to hold the job's frames (by timestamp)."""
+        path = self.store_path()
+        store = FrameStore(path)
+        stamps = np.array([e.timestamp for e in self.events])
+        index = match_timestamps(stamps, store.timestamps)
+        if len(store) < len(stamps) or np.any(index != np.arange(len(stamps))):
+            store.close()
+            raise InputError(
+                f"{path} does not hold the frames of {self.job_dir} (timestamps "
+                "differ): is it the job's store? Pass the right one with --store"
+            )
+        return store
+
+    def ground_truth(self, timestamps: np.ndarray) -> np.ndarray | None:
+        """GT camera-to-world poses at `timestamps` (NaN where unknown), matched by timestamp.
+
+        From ``--store`` (an error if it has no GT), else from the recorded store when it is
+        still there; None without GT."""
+        store = self.explicit_store or self.recorded_store()
+        if store is None:
+            return None
+        with FrameStore(store) as opened:
+            if not opened.has_gt:
+                if self.explicit_store is not None:
+                    raise InputError(f"{store} has no ground-truth poses; leave out --store")
+                return None
+            index = match_timestamps(timestamps, opened.timestamps)
+            poses = opened.poses_gt
+        if not np.any(index >= 0):
+            raise InputError(f"no frame of the job is in {store}: is it the job's store?")
+        return np.where((index >= 0)[:, None, None], poses[index], np.nan)
