@@ -1,4 +1,4 @@
-.PHONY: demo test install lint bench clean
+.PHONY: demo test install lint goldens bench clean
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
@@ -16,6 +16,10 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest
+
+# Rewrite tests/golden/*.json from fresh runs; commit them only with the reason in the message.
+goldens: $(STAMP)
+	BGS_UPDATE_GOLDENS=1 $(PY) -m pytest -q tests/test_golden.py
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
