@@ -14,6 +14,7 @@ Prints a table and one SUMMARY line.
 from __future__ import annotations
 
 import argparse
+import json
 import resource
 import sys
 import tempfile
@@ -30,6 +31,7 @@ from bgs_batch.store import FrameStore
 from converters.pipeline import write_store
 from converters.tum import TumOptions, plan_tum
 from jobs.run import run_job
+from outputs.export import ExportOptions, export_job
 from outputs.trajectory import read_tum
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -47,6 +49,22 @@ TARGET_FPS = 0.5
 TARGET_KEYFRAME_SHARE = 0.35
 TARGET_EVERY_RATIO = 1.15
 TARGET_RSS_GB = 4.0
+
+
+AUSE_LABELS = {
+    "predictive": "full predictive Sigma_D = sensor + map (ours)",
+    "map": "map-only (opacity-induced) variance",
+    "sensor": "sensor-only variance",
+    "varsplat": "VarSplat-style (colour map variance reused for depth)",
+}
+
+
+def depth_ause(job: Path) -> dict[str, float]:
+    """Depth AUSE-MAE (raw units) of the four uncertainties, from the job's `bgs eval`."""
+    export_job(job, ExportOptions(ply=False, uncertainty=False, renders=False, report=False))
+    metrics = json.loads((job / "outputs" / "metrics.json").read_text())
+    by_variance = metrics["uncertainty"]["ause_mae_depth_by_variance"]
+    return {name: by_variance[name]["ause_raw"] for name in AUSE_LABELS}
 
 
 def open3d_dense_slam(store: FrameStore, frames: int) -> tuple[np.ndarray, float]:
@@ -112,6 +130,7 @@ def main() -> None:
             if name == "bgs cpu":  # its ATE over the frames the every-frame run covers
                 _, poses = read_tum(job / "trajectory.txt")
                 cpu_ate_every = ate(poses[:every_frames, :3, 3], gt[:every_frames])["rmse"]
+                ause = depth_ause(job)
     rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
     print(f"bench/slam_tum.py: {args.tum.name}, {n} frames")
@@ -130,7 +149,12 @@ def main() -> None:
         f"{every.ate_rmse_m * 100:.2f} cm = {ratio:.2f}x (target <= {TARGET_EVERY_RATIO}); "
         f"peak RSS {rss_gb:.2f} GiB"
     )
-    ok = (cpu.ate_rmse_m <= TARGET_ATE_M and cpu.fps >= TARGET_FPS
+    print("  depth AUSE-MAE (raw, m) on the cpu run's keyframes, by uncertainty:")
+    for variance, value in ause.items():
+        print(f"    {variance:<12} {value:.4f}  {AUSE_LABELS[variance]}")
+    ause_ok = all(ause["predictive"] < v for k, v in ause.items() if k != "predictive")
+    print(f"  predictive lowest: {'yes' if ause_ok else 'NO'}")
+    ok = (ause_ok and cpu.ate_rmse_m <= TARGET_ATE_M and cpu.fps >= TARGET_FPS
           and share <= TARGET_KEYFRAME_SHARE and ratio <= TARGET_EVERY_RATIO
           and rss_gb <= TARGET_RSS_GB)  # fmt: skip
     print(
