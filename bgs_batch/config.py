@@ -109,6 +109,85 @@ class KeyframeConfig:
     max_gap: int = 5  # fallback: a keyframe at least every N frames
 
 
+# --- loop closure (issue P8) -------------------------------------------------------------------
+@dataclass
+class LoopClosureConfig:
+    """Loop closure over submaps (LoopSplat §5; `bgs_batch.loop_closure`).
+
+    At every submap switch: ORB bag-of-words place recognition over keyframes (the vocabulary is
+    learnt online, no weights are downloaded), geometric verification (3-D/3-D RANSAC on depth),
+    render-based registration weighted by the predictive uncertainty (ICP as fallback), Open3D
+    pose-graph optimisation and rigid correction of submaps and poses.
+    """
+
+    enabled: bool = True
+    descriptor: Literal["orb", "netvlad"] = "orb"  # netvlad: not supported yet (clear error)
+    netvlad_weights: str = ""  # user-supplied NetVLAD weights file, for descriptor=netvlad
+    final: bool = False  # also close loops after the last frame (LoopSplat's lc.final)
+    # place recognition (LoopSplat: skipped below 4 submaps, min_interval 3 on TUM)
+    min_submaps: int = 4  # finished submaps before detection starts
+    min_interval: int = 3  # a candidate is more than this many submaps older than the query
+    self_similarity: float = 0.5  # threshold: a query keyframe's k-th best similarity to the n
+    # other keyframes of its submap, k = max(int(n · this), 1) (≈ median; LoopSplat's value)
+    max_candidates: int = 2  # best candidate submaps registered per switch
+    orb_features: int = 500  # per keyframe, on the input image
+    orb_patch: int = 31  # patch size and border of ORB (smaller for tiny images)
+    orb_levels: int = 4
+    orb_scale: float = 1.2
+    orb_fast_threshold: int = 20
+    vocabulary_words: int = 256  # binary k-majority clusters, trained on descriptors seen so far
+    vocabulary_iterations: int = 8
+    vocabulary_samples: int = 20_000  # descriptors used per training (evenly spaced)
+    vocabulary_growth: float = 2.0  # retrain when the descriptors seen grew by this factor
+    # geometric verification: descriptor matches of keyframe pairs, rigid RANSAC on depth
+    verify_pairs: int = 3  # most similar keyframe pairs tried per candidate
+    match_ratio: float = 0.8  # Lowe's ratio test on Hamming distances (and mutual best)
+    ransac_iterations: int = 256
+    ransac_threshold: float = 0.05  # m, 3-D inlier distance
+    min_inliers: int = 15
+    min_inlier_ratio: float = 0.25
+    overlap_radius: float = 0.1  # m; overlap gate on Gaussian centres (LoopSplat: 0.32 m) ...
+    min_overlap: float = 0.2  # ... share of query centres near the candidate's (LoopSplat 0.2)
+    # render-based registration: query keyframes tracked in the candidate submap (Tracker loss)
+    viewpoints: int = 2  # query keyframes localised and fused
+    # uncertainty: Σ|r|/√Σ with our predictive variances; uniform: a constant variance instead
+    # (LoopSplat's unweighted L1, for comparison)
+    weighting: Literal["uncertainty", "uniform"] = "uncertainty"
+    iterations: int = 40  # from the RANSAC estimate: a few cm off, fewer than tracking
+    rot_lr: float = 0.015  # LoopSplat: 3 × base lr 5e-3
+    trans_lr: float = 0.005
+    downscale: int = 1  # relative to the mapping resolution
+    coarse_levels: int = 1
+    coarse_fraction: float = 0.4
+    early_stop_rel: float = 1e-3
+    early_stop_patience: int = 5
+    min_coverage: float = 0.3  # share of valid-depth pixels the candidate renders (alpha gate)
+    inlier_depth: float = 0.05  # m; a covered pixel agrees when |D̂ − D| is below this ...
+    min_depth_inliers: float = 0.6  # ... and this share of covered pixels must agree
+    max_disagreement_m: float = 0.1  # a viewpoint this far from the RANSAC estimate diverged
+    max_disagreement_deg: float = 5.0
+    # geometric fallback: point-to-plane ICP on Gaussian centres
+    icp_max_distance: float = 0.05  # m
+    icp_iterations: int = 30
+    icp_min_fitness: float = 0.3
+    icp_max_rmse: float = 0.02  # m
+    icp_normal_neighbours: int = 16
+    max_points: int = 20_000  # Gaussian centres per submap for ICP, overlap and information
+    # pose graph (Open3D, Levenberg-Marquardt; LoopSplat's values)
+    max_correspondence_distance: float = 0.03  # m; information matrices and line process
+    edge_prune_threshold: float = 0.25
+    preference_loop_closure: float = 5.0  # Open3D reconstruction system, registration loops
+    information_prior: float = 1.0  # added to every edge's information diagonal (no overlap)
+    # evaluation lever (tests, bench/loop_closure.py): odometry drift injected at every submap
+    # switch, a rotation about the world y axis through the camera plus a shift along its x
+    # axis; works with loop closure on or off; keep 0 for real runs
+    inject_drift_deg: float = 0.0
+    inject_drift_m: float = 0.0
+
+
+# --- end loop closure ----------------------------------------------------------------------------
+
+
 @dataclass
 class Config:
     """A whole SLAM run."""
@@ -124,6 +203,7 @@ class Config:
     seeding: SeedingConfig = field(default_factory=SeedingConfig)
     submaps: SubmapConfig = field(default_factory=SubmapConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)  # issue P8
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -21,6 +21,7 @@ from bgs_batch.config import Config, SubmapConfig
 from bgs_batch.frames import Level, camera_for, crop_and_clip, downsample, to_level
 from bgs_batch.gaussian_map import GaussianMap
 from bgs_batch.keyframes import KeyframeSelector
+from bgs_batch.loop_closure import LoopCloser, inject_drift  # issue P8
 from bgs_batch.mapping import Keyframe, Mapper
 from bgs_batch.sensor_noise import SensorNoiseNet
 from bgs_batch.store import Frame
@@ -58,6 +59,7 @@ class Timings:
     mapping: float = 0.0
     sensor: float = 0.0
     submaps: float = 0.0
+    loop_closure: float = 0.0  # issue P8: features, detection, registration, pose graph
 
     def add(self, stage: str, seconds: float) -> None:
         setattr(self, stage, getattr(self, stage) + seconds)
@@ -89,6 +91,7 @@ class Slam:
         self.gmap = GaussianMap()
         self.active_keyframes: list[Keyframe] = []
         self.submap_first_frame = 0
+        self.loop_closer = LoopCloser(self.cfg)  # issue P8
 
     def prepare(self, frame: Frame) -> tuple[Level, Level]:
         """The frame at input resolution (cropped, depth clipped) and at mapping resolution."""
@@ -130,13 +133,18 @@ class Slam:
         first_of_submap = not self.active_keyframes
         if not first_of_submap and self._should_switch(frame.index, c2w):
             start = time.perf_counter()
+            finished = self.active_keyframes
             self._finish_submap(last_frame=frame.index - 1)
             first_of_submap = True
             self.timings.add("submaps", time.perf_counter() - start)
+            c2w = self._close_loops(finished, event)  # issue P8: may correct every pose
 
         decision = self.selector.decide(frame.index, score_c, score_d, first_of_submap)
         event.update(decision.as_dict())
         if decision.keyframe:
+            start = time.perf_counter()
+            self.loop_closer.add_keyframe(frame.index, len(self.submaps), full, c2w)  # P8
+            self.timings.add("loop_closure", time.perf_counter() - start)
             start = time.perf_counter()
             self.active_keyframes.append(Keyframe(frame.index, level, c2w))
             if first_of_submap:
@@ -155,6 +163,23 @@ class Slam:
         if s.mode == "interval":
             return index - self.submap_first_frame >= s.every
         return exceeds_motion(self.poses[self.submap_first_frame], c2w, s)
+
+    # --- loop closure hook (issue P8) -------------------------------------------------------
+    def _close_loops(self, finished: list[Keyframe], event: dict[str, Any] | None) -> np.ndarray:
+        """Loop closure after a submap was frozen (it may correct all poses so far), then the
+        optional injected drift of the new submap's first pose; returns the current pose."""
+        start = time.perf_counter()
+        report = self.loop_closer.on_submap_finished(self.submaps, finished, self.poses,
+                                                     self.sensor)  # fmt: skip
+        if report is not None and event is not None:
+            event["loop_closure"] = report
+        lc = self.cfg.loop_closure
+        if event is not None:  # a switch (not the end of the run): the drift lever
+            self.poses[-1] = inject_drift(self.poses[-1], lc.inject_drift_deg, lc.inject_drift_m)
+        self.timings.add("loop_closure", time.perf_counter() - start)
+        return self.poses[-1]
+
+    # --- end loop closure hook ----------------------------------------------------------------
 
     def _finish_submap(self, last_frame: int) -> None:
         """Freeze the active submap to disk and start an empty one."""
@@ -188,6 +213,7 @@ class Slam:
             "selector": self.selector.state_dict(),
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
+            "loop_closure": self.loop_closer.state_dict(),  # issue P8
         }
 
     def load_state_dict(self, state: dict[str, Any], read_frame: Callable[[int], Frame]) -> None:
@@ -208,8 +234,13 @@ class Slam:
         self.selector.load_state_dict(state["selector"])
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
+        if "loop_closure" in state:  # issue P8 (absent in older checkpoints)
+            self.loop_closer.load_state_dict(state["loop_closure"])
 
     def finish(self) -> None:
         """Write the last submap too (LoopSplat drops it; its frames deserve a map)."""
         if self.active_keyframes:
+            finished = self.active_keyframes
             self._finish_submap(last_frame=len(self.poses) - 1)
+            if self.cfg.loop_closure.final:  # issue P8: LoopSplat's lc.final
+                self._close_loops(finished, event=None)
