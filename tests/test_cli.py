@@ -71,7 +71,6 @@ def test_demo_end_to_end(tmp_path):
     outputs = tmp_path / "demo" / "job" / "outputs"
     for name in ("report.html", "metrics.json", "ply/global.ply", "uncertainty.h5"):
         assert (outputs / name).is_file(), name
-    assert "AUSE-MAE" in result.output and "report.html" in result.output
     # a second demo replaces its own outputs instead of refusing
     assert run("-q", "demo", "--dir", tmp_path / "demo", "--frames", "6", "--size", "64x48"
                ).exit_code == 0  # fmt: skip

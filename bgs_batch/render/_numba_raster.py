@@ -44,11 +44,6 @@ FASTMATH = {"contract", "arcp", "nsz"}
 """LLVM fast-math flags of the hot kernels: FMA contraction and reciprocal rewrites only (about
 25% off the backward). No reassociation, so sums keep their order (determinism)."""
 
-FASTMATH_REDUCE = FASTMATH | {"reassoc"}
-"""The backward's flags: reassociation lets LLVM vectorise its per-Gaussian lane sums. The
-order of a vectorised sum is fixed by the compiled code and the trip count, so results stay
-bitwise reproducible and independent of the thread count."""
-
 S_MEAN, S_CONIC, S_OPACITY, S_FEAT, S_VAR = 0, 2, 5, 6, 10
 """Offsets of the parameter groups in a gradient slot."""
 
@@ -297,7 +292,7 @@ def raster_fwd(
                         out_dvdf[py, px, ch] = s1[ch, p] - delta * s0[p]
 
 
-@numba.njit(parallel=True, cache=True, fastmath=FASTMATH_REDUCE)
+@numba.njit(parallel=True, cache=True, fastmath=FASTMATH)
 def raster_bwd(
     means2d, conics, opacities, feats, variances, rects, tile_start, isect_gauss,
     xs, ys, consts, n_chunks, full_grad, want_appearance, out_feat, out_trans, out_dvdf, out_last,
@@ -313,8 +308,8 @@ def raster_bwd(
 
     Like the forward, each Gaussian is processed over the tile-wide rows of its bounding box by
     branch-free loops over lanes (masks as selects; masked lanes contribute exact zeros); the
-    slot sums are vectorised reductions, whose order depends only on the compiled code and the
-    span length, never on the thread count.
+    slot sums run in lane order (no reassociation: a vectorised sum's order can differ between
+    processes, which broke bitwise resume).
     """
     height, width = out_trans.shape
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
