@@ -2,11 +2,15 @@
 
 Layout: ``feats[M, 4]`` holds RGB and the camera depth of each Gaussian, so colour and depth are
 composited by the same loop. Work is split over screen tiles of ``TILE_SIZE`` pixels; within a
-tile the Gaussians (depth sorted) form the outer loop. The forward visits the tile-wide rows of
+tile the Gaussians (depth sorted) form the outer loop. Both passes visit the tile-wide rows of
 each Gaussian's opacity-aware bounding box with branch-free loops that LLVM vectorises; the
-backward visits only the pixels of the box (scalar), walks each tile back to front and writes one
-gradient slot per (tile, Gaussian) intersection; :func:`reduce_slots` sums the slots of each
-Gaussian in a fixed order, so results never depend on the thread count.
+backward walks each tile back to front and writes one gradient slot per (tile, Gaussian)
+intersection; :func:`reduce_slots` sums the slots of each Gaussian in a fixed order, so results
+never depend on the thread count.
+
+Lane ranges ``p0:p1`` are unsigned (``np.uint64``) and index the per-tile arrays directly:
+numba wraps negative signed indices with a select that stops LLVM from vectorising, and a slice
+per range would cost two atomic reference-count updates.
 
 Work is dealt round-robin to ``n_chunks`` parallel chunks (pass ``numba.get_num_threads()``);
 the chunking never changes a result. All floating-point constants enter through the typed
@@ -73,14 +77,14 @@ def exp_neg(sigma, fast, consts):
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def exp_neg_rows(values, fast, consts):
-    """``values[:] = e^-values`` (see :func:`exp_neg`); the dtype test is outside the loop,
-    so the float32 loop vectorises."""
+def exp_neg_rows(values, p0, p1, fast, consts):
+    """``values[p0:p1] = e^-values[p0:p1]`` (see :func:`exp_neg`); the dtype test is outside
+    the loop, so the float32 loop vectorises."""
     if fast:
-        for j in range(values.shape[0]):
+        for j in range(p0, p1):
             values[j] = exp_neg(values[j], True, consts)
     else:
-        for j in range(values.shape[0]):
+        for j in range(p0, p1):
             values[j] = math.exp(-values[j])
 
 
@@ -165,9 +169,9 @@ def tile_lanes(xs, ys, px0, py0, lane_x, lane_y):
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def sigma_rows(lane_x, lane_y, mx, my, a, b, c, sigma_max, half, out):
-    """``out = min(σ, σ_max)`` with ``σ = ½(a dx² + c dy²) + b dx dy`` on a span of lanes."""
-    for j in range(out.shape[0]):
+def sigma_rows(lane_x, lane_y, p0, p1, mx, my, a, b, c, sigma_max, half, out):
+    """``out = min(σ, σ_max)`` with ``σ = ½(a dx² + c dy²) + b dx dy`` on lanes ``p0:p1``."""
+    for j in range(p0, p1):
         dx = lane_x[j] - mx
         dy = lane_y[j] - my
         out[j] = min(half * (a * dx * dx + c * dy * dy) + b * dx * dy, sigma_max)
@@ -232,53 +236,46 @@ def raster_fwd(
                 g = isect_gauss[k]
                 o, v = opacities[g], variances[g]
                 x0, x1 = xs[rects[g, 0]], xs[rects[g, 1]]
-                p0 = (max(rects[g, 2], py0) - py0) * TILE_SIZE
-                p1 = (min(rects[g, 3] + 1, py1) - py0) * TILE_SIZE
-                lx, al = lane_x[p0:p1], alphas[p0:p1]
+                p0 = np.uint64((max(rects[g, 2], py0) - py0) * TILE_SIZE)
+                p1 = np.uint64((min(rects[g, 3] + 1, py1) - py0) * TILE_SIZE)
                 sigma_rows(
-                    lx, lane_y[p0:p1], means2d[g, 0], means2d[g, 1],
-                    conics[g, 0], conics[g, 1], conics[g, 2], sigma_max, half, al,
+                    lane_x, lane_y, p0, p1, means2d[g, 0], means2d[g, 1],
+                    conics[g, 0], conics[g, 1], conics[g, 2], sigma_max, half, alphas,
                 )  # fmt: skip
-                exp_neg_rows(al, fast_exp, consts)
-                tr, dn, ls = trans[p0:p1], done[p0:p1], last[p0:p1]
-                wt, mo = weights[p0:p1], moments[p0:p1]
-                n = p1 - p0
-                for j in range(n):
-                    alpha = min(alpha_max, o * al[j])
-                    hit = (lx[j] >= x0) & (lx[j] <= x1) & (dn[j] == 0) & (alpha >= alpha_min)
-                    al[j] = alpha if hit else zero
-                for j in range(n):  # blend unless it would bring T below T_MIN
-                    t_old = tr[j]
-                    blend = (al[j] > zero) & (t_old * (one - al[j]) >= t_min)
-                    wt[j] = al[j] * t_old if blend else zero
-                    mo[j] = v * t_old * t_old if blend else zero
+                exp_neg_rows(alphas, p0, p1, fast_exp, consts)
+                for j in range(p0, p1):
+                    alpha = min(alpha_max, o * alphas[j])
+                    hit = ((lane_x[j] >= x0) & (lane_x[j] <= x1) & (done[j] == 0)
+                           & (alpha >= alpha_min))  # fmt: skip
+                    alphas[j] = alpha if hit else zero
+                for j in range(p0, p1):  # blend unless it would bring T below T_MIN
+                    t_old = trans[j]
+                    blend = (alphas[j] > zero) & (t_old * (one - alphas[j]) >= t_min)
+                    weights[j] = alphas[j] * t_old if blend else zero
+                    moments[j] = v * t_old * t_old if blend else zero
                 n_stop = 0
-                for j in range(n):
-                    stop = (al[j] > zero) & (tr[j] * (one - al[j]) < t_min)
-                    dn[j] = 1 if stop else dn[j]
+                for j in range(p0, p1):
+                    stop = (alphas[j] > zero) & (trans[j] * (one - alphas[j]) < t_min)
+                    done[j] = 1 if stop else done[j]
                     n_stop += 1 if stop else 0
                 n_active -= n_stop
                 for ch in range(feats.shape[1]):  # a runtime bound: no unrolling, less JIT
                     f = feats[g, ch]
-                    rf = ref[ch, p0:p1]
-                    for j in range(n):  # the first contributor is the shift of the moments
-                        rf[j] = f if (wt[j] > zero) & (ls[j] < 0) else rf[j]
-                    ac = acc[ch, p0:p1]
-                    for j in range(n):
-                        ac[j] += f * wt[j]
-                    m1, m2 = s1[ch, p0:p1], s2[ch, p0:p1]
-                    for j in range(n):
-                        d = f - rf[j]
-                        m1[j] += mo[j] * d
-                        m2[j] += mo[j] * d * d
+                    for j in range(p0, p1):  # the first contributor is the shift of the moments
+                        ref[ch, j] = f if (weights[j] > zero) & (last[j] < 0) else ref[ch, j]
+                    for j in range(p0, p1):
+                        acc[ch, j] += f * weights[j]
+                    for j in range(p0, p1):
+                        d = f - ref[ch, j]
+                        s1[ch, j] += moments[j] * d
+                        s2[ch, j] += moments[j] * d * d
                 kk = np.int32(k)
-                for j in range(n):
-                    ls[j] = kk if wt[j] > zero else ls[j]
-                for j in range(n):
-                    tr[j] = tr[j] * (one - al[j]) if wt[j] > zero else tr[j]
-                sz = s0[p0:p1]
-                for j in range(n):
-                    sz[j] += mo[j]
+                for j in range(p0, p1):
+                    last[j] = kk if weights[j] > zero else last[j]
+                for j in range(p0, p1):
+                    trans[j] = trans[j] * (one - alphas[j]) if weights[j] > zero else trans[j]
+                for j in range(p0, p1):
+                    s0[j] += moments[j]
             for py in range(py0, py1):
                 for px in range(px0, px1):
                     p = (py - py0) * TILE_SIZE + px - px0
@@ -290,6 +287,28 @@ def raster_fwd(
                         out_feat[py, px, ch] = acc[ch, p]
                         out_var[py, px, ch] = max(var, zero)
                         out_dvdf[py, px, ch] = s1[ch, p] - delta * s0[p]
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def lane_sum(values, p0, p1, partial):
+    """``Σ values[p0:p1]`` in a fixed order that vectorises without reassociation.
+
+    ``p0:p1`` are whole tile rows: each of the ``TILE_SIZE`` lanes of a row accumulates over the
+    rows in ``partial``, then the lanes are added pairwise (a tree). The order depends only on
+    the span, never on the compiled code, so every process gets the same bits (fast-math
+    ``reassoc`` did not guarantee that).
+    """
+    for lane in range(TILE_SIZE):
+        partial[lane] = values[p0 + np.uint64(lane)]
+    for row in range(p0 + np.uint64(TILE_SIZE), p1, np.uint64(TILE_SIZE)):
+        for lane in range(TILE_SIZE):
+            partial[lane] += values[row + np.uint64(lane)]
+    width = TILE_SIZE // 2
+    while width > 0:
+        for lane in range(width):
+            partial[lane] += partial[lane + width]
+        width //= 2
+    return partial[0]
 
 
 @numba.njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -307,9 +326,9 @@ def raster_bwd(
     the opacity and ``v`` entries are computed but not needed.
 
     Like the forward, each Gaussian is processed over the tile-wide rows of its bounding box by
-    branch-free loops over lanes (masks as selects; masked lanes contribute exact zeros); the
-    slot sums run in lane order (no reassociation: a vectorised sum's order can differ between
-    processes, which broke bitwise resume).
+    branch-free loops over lanes (masks as selects; masked lanes contribute exact zeros); each
+    slot entry is first written per lane, then summed by :func:`lane_sum` (vectorised, in a
+    fixed order).
     """
     height, width = out_trans.shape
     tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
@@ -332,12 +351,15 @@ def raster_bwd(
         gauss = np.empty(TILE_PIXELS, feats.dtype)  # σ, then e^-σ
         alphas = np.empty(TILE_PIXELS, feats.dtype)  # masked α
         inverse = np.empty(TILE_PIXELS, feats.dtype)  # 1 / (1 − α)
-        t_front = np.empty(TILE_PIXELS, feats.dtype)  # T_i
         weights = np.empty(TILE_PIXELS, feats.dtype)  # w = α T_i
         moments = np.empty(TILE_PIXELS, feats.dtype)  # u = v T_i², 0 where not blended
         squares = np.empty(TILE_PIXELS, feats.dtype)  # T_i², 0 where not blended
         q_var = np.empty(TILE_PIXELS, feats.dtype)  # q = Σ_ch ∂L/∂V (f − F)²
         g_dot_f = np.empty(TILE_PIXELS, feats.dtype)  # ⟨∂L/∂F, f_i⟩
+        d_alphas = np.empty(TILE_PIXELS, feats.dtype)  # ∂L/∂α_i, 0 where not blended
+        d_sigmas = np.empty(TILE_PIXELS, feats.dtype)  # ∂L/∂σ_i
+        terms = np.empty(TILE_PIXELS, feats.dtype)  # one slot entry per lane, then summed
+        partial = np.empty(TILE_SIZE, feats.dtype)
         for tile in range(chunk, n_tiles, n_chunks):
             px0 = (tile % tiles_x) * TILE_SIZE
             py0 = (tile // tiles_x) * TILE_SIZE
@@ -376,65 +398,72 @@ def raster_bwd(
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 o, v = opacities[g], variances[g]
                 x0, x1 = xs[rects[g, 0]], xs[rects[g, 1]]
-                p0 = (max(rects[g, 2], py0) - py0) * TILE_SIZE
-                p1 = (min(rects[g, 3] + 1, py1) - py0) * TILE_SIZE
-                n = p1 - p0
-                lx, ly, gs = lane_x[p0:p1], lane_y[p0:p1], gauss[p0:p1]
-                sigma_rows(lx, ly, mx, my, a, b, c, sigma_max, half, gs)
-                exp_neg_rows(gs, fast_exp, consts)
-                al, tr, ls = alphas[p0:p1], trans[p0:p1], last[p0:p1]
-                iv, ti, wt = inverse[p0:p1], t_front[p0:p1], weights[p0:p1]
-                mo, sq, qv, gd = moments[p0:p1], squares[p0:p1], q_var[p0:p1], g_dot_f[p0:p1]
+                p0 = np.uint64((max(rects[g, 2], py0) - py0) * TILE_SIZE)
+                p1 = np.uint64((min(rects[g, 3] + 1, py1) - py0) * TILE_SIZE)
+                sigma_rows(lane_x, lane_y, p0, p1, mx, my, a, b, c, sigma_max, half, gauss)
+                exp_neg_rows(gauss, p0, p1, fast_exp, consts)
                 kk = np.int32(k)
-                for j in range(n):
-                    alpha = min(alpha_max, o * gs[j])
-                    hit = (lx[j] >= x0) & (lx[j] <= x1) & (ls[j] >= kk) & (alpha >= alpha_min)
-                    al[j] = alpha if hit else zero
-                for j in range(n):  # T_i = T_{i+1} / (1 − α_i); unchanged where not blended
-                    inv = one / (one - al[j])
-                    iv[j] = inv
-                    ti[j] = tr[j] * inv
-                    tr[j] = tr[j] * inv
-                for j in range(n):
-                    wt[j] = al[j] * ti[j]
-                    sq[j] = ti[j] * ti[j] if al[j] > zero else zero
-                    mo[j] = v * sq[j]
-                qv[:] = zero
-                gd[:] = zero
+                for j in range(p0, p1):
+                    alpha = min(alpha_max, o * gauss[j])
+                    hit = ((lane_x[j] >= x0) & (lane_x[j] <= x1) & (last[j] >= kk)
+                           & (alpha >= alpha_min))  # fmt: skip
+                    alphas[j] = alpha if hit else zero
+                for j in range(p0, p1):  # T_i = T_{i+1} / (1 − α_i); unchanged where not blended
+                    inverse[j] = one / (one - alphas[j])
+                    trans[j] = trans[j] * inverse[j]
+                for j in range(p0, p1):
+                    weights[j] = alphas[j] * trans[j]
+                    squares[j] = trans[j] * trans[j] if alphas[j] > zero else zero
+                for j in range(p0, p1):
+                    moments[j] = v * squares[j]
+                    q_var[j] = zero
+                    g_dot_f[j] = zero
                 for ch in range(N_FEAT):  # a runtime bound: no unrolling, less JIT
                     f = feats[g, ch]
-                    fi, gfi, gvi = fin[ch, p0:p1], g_fin[ch, p0:p1], g_v[ch, p0:p1]
-                    for j in range(n):
-                        d = f - fi[j]
-                        qv[j] += gvi[j] * d * d
-                        gd[j] += gfi[j] * f
+                    for j in range(p0, p1):
+                        d = f - fin[ch, j]
+                        q_var[j] += g_v[ch, j] * d * d
+                        g_dot_f[j] += g_fin[ch, j] * f
                     s_f = zero
                     if want_appearance or ch == N_FEAT - 1:
-                        for j in range(n):
-                            s_f += wt[j] * gfi[j] + two * gvi[j] * mo[j] * (f - fi[j])
+                        for j in range(p0, p1):
+                            d = f - fin[ch, j]
+                            terms[j] = weights[j] * g_fin[ch, j] + two * g_v[ch, j] * moments[j] * d
+                        s_f = lane_sum(terms, p0, p1, partial)
                     slots[k, S_FEAT + ch] = s_f
-                s_mx = s_my = s_ca = s_cb = s_cc = s_op = s_v = zero
-                gb, rs, gfl = g_behind[p0:p1], r_sum[p0:p1], g_final[p0:p1]
-                for j in range(n):
+                for j in range(p0, p1):
                     # ∂F/∂α_i = f_i T_i − (Σ_{j>i} f_j w_j)/(1 − α_i), dotted with ∂L/∂F.
-                    d_alpha = ti[j] * gd[j] + (gfl[j] - gb[j] - r_weight * rs[j]) * iv[j]
-                    gb[j] += wt[j] * gd[j]
-                    rs[j] += qv[j] * mo[j]
-                    raw = o * gs[j]
-                    d_alpha = d_alpha if (al[j] > zero) & (raw < alpha_max) else zero
-                    s_op += d_alpha * gs[j]
-                    s_v += sq[j] * qv[j]
-                    d_sigma = -d_alpha * raw
-                    dx = lx[j] - mx
-                    dy = ly[j] - my
-                    s_mx -= d_sigma * (a * dx + b * dy)
-                    s_my -= d_sigma * (b * dx + c * dy)
-                    s_ca += d_sigma * half * dx * dx
-                    s_cb += d_sigma * dx * dy
-                    s_cc += d_sigma * half * dy * dy
-                slots[k, S_MEAN], slots[k, S_MEAN + 1] = s_mx, s_my
-                slots[k, S_CONIC], slots[k, S_CONIC + 1], slots[k, S_CONIC + 2] = s_ca, s_cb, s_cc
-                slots[k, S_OPACITY], slots[k, S_VAR] = s_op, s_v
+                    d_alpha = trans[j] * g_dot_f[j] + (
+                        g_final[j] - g_behind[j] - r_weight * r_sum[j]
+                    ) * inverse[j]
+                    blended = (alphas[j] > zero) & (o * gauss[j] < alpha_max)
+                    d_alphas[j] = d_alpha if blended else zero
+                for j in range(p0, p1):
+                    g_behind[j] += weights[j] * g_dot_f[j]
+                    r_sum[j] += q_var[j] * moments[j]
+                for j in range(p0, p1):
+                    d_sigmas[j] = -d_alphas[j] * o * gauss[j]
+                for j in range(p0, p1):
+                    terms[j] = d_alphas[j] * gauss[j]
+                slots[k, S_OPACITY] = lane_sum(terms, p0, p1, partial)
+                for j in range(p0, p1):
+                    terms[j] = squares[j] * q_var[j]
+                slots[k, S_VAR] = lane_sum(terms, p0, p1, partial)
+                for j in range(p0, p1):
+                    terms[j] = -d_sigmas[j] * (a * (lane_x[j] - mx) + b * (lane_y[j] - my))
+                slots[k, S_MEAN] = lane_sum(terms, p0, p1, partial)
+                for j in range(p0, p1):
+                    terms[j] = -d_sigmas[j] * (b * (lane_x[j] - mx) + c * (lane_y[j] - my))
+                slots[k, S_MEAN + 1] = lane_sum(terms, p0, p1, partial)
+                for j in range(p0, p1):
+                    terms[j] = d_sigmas[j] * half * (lane_x[j] - mx) * (lane_x[j] - mx)
+                slots[k, S_CONIC] = lane_sum(terms, p0, p1, partial)
+                for j in range(p0, p1):
+                    terms[j] = d_sigmas[j] * (lane_x[j] - mx) * (lane_y[j] - my)
+                slots[k, S_CONIC + 1] = lane_sum(terms, p0, p1, partial)
+                for j in range(p0, p1):
+                    terms[j] = d_sigmas[j] * half * (lane_y[j] - my) * (lane_y[j] - my)
+                slots[k, S_CONIC + 2] = lane_sum(terms, p0, p1, partial)
 
 
 @numba.njit(parallel=True, cache=True)
