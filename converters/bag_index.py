@@ -1,4 +1,4 @@
-"""Open ROS1/ROS2 bags with rosbags, and index one in a first pass without decoding any pixels.
+"""Open ROS1/ROS2 bags, and index one in a first pass without decoding any pixels.
 
 The index holds what the converter must decide before streaming frames: each image topic's kind,
 encoding and header stamps, the cameras' ``CameraInfo``, the static transforms (``/tf_static``,
@@ -15,16 +15,15 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as Ros1ReaderError
-from rosbags.rosbag2 import ReaderError as Ros2ReaderError
 from rosbags.serde import SerdeError
+from rosbags.typesys import TypesysError
 
 from bgs_batch.errors import InputError
-from converters.mcap_salvage import SalvagedMcap
+from converters.bag_readers import BagReader, BagReadError, Ros1Bag, Ros2Bag
 from converters.ros_images import (
     DEPTH,
     IMAGE,
@@ -35,13 +34,16 @@ from converters.ros_images import (
 )
 from converters.ros_tf import TransformTree, frame_name, quaternion, transform_matrix, vector3
 
+if TYPE_CHECKING:
+    from converters.mcap_salvage import SalvagedMcap
+
 log = logging.getLogger(__name__)
 
 ROS1_SUFFIX = ".bag"
 MCAP_SUFFIX = ".mcap"
 ROS2_SUFFIXES = (".db3", MCAP_SUFFIX)
 ROS2_METADATA = "metadata.yaml"
-BAG_ERRORS = (AnyReaderError, Ros1ReaderError, Ros2ReaderError, SerdeError, struct.error)
+BAG_ERRORS = (BagReadError, Ros1ReaderError, SerdeError, TypesysError, struct.error)
 
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
@@ -79,8 +81,8 @@ def bag_error(path: Path, err: Exception) -> InputError:
 
 
 @contextmanager
-def open_bag(path: Path) -> Iterator[AnyReader | SalvagedMcap]:
-    """An open rosbags ``AnyReader`` for a ROS1 ``.bag``, a ROS2 ``.db3``/``.mcap`` or folder.
+def open_bag(path: Path) -> Iterator[BagReader | SalvagedMcap]:
+    """An open reader of a ROS1 ``.bag``, a ROS2 ``.db3``/``.mcap`` or a ROS2 bag folder.
 
     A bare ROS2 file next to its ``metadata.yaml`` is opened through its folder, which is the
     only way rosbags can read message-compressed bags. A truncated MCAP is salvaged instead.
@@ -96,8 +98,7 @@ def open_bag(path: Path) -> Iterator[AnyReader | SalvagedMcap]:
             f"file, or a ROS2 bag folder holding {ROS2_METADATA}"
         )
     try:
-        reader = AnyReader([path])
-        reader.open()
+        reader = Ros1Bag(path) if path.suffix == ROS1_SUFFIX else Ros2Bag(path)
     except BAG_ERRORS as err:
         reader = _salvage(path, err)
     try:
@@ -110,6 +111,8 @@ def _salvage(path: Path, err: Exception) -> SalvagedMcap:
     """The intact part of a truncated MCAP; any other unreadable bag is an error."""
     files = [path] if path.suffix == MCAP_SUFFIX else sorted(path.glob(f"*{MCAP_SUFFIX}"))
     if len(files) == 1:
+        from converters.mcap_salvage import SalvagedMcap  # rarely needed: imported on demand
+
         salvaged = SalvagedMcap(files[0])
         if salvaged.connections:
             log.warning("%s: %s; converting the messages of its intact chunks", files[0], err)
@@ -117,7 +120,7 @@ def _salvage(path: Path, err: Exception) -> SalvagedMcap:
     raise bag_error(path, err) from err
 
 
-def deserializer(reader: AnyReader | SalvagedMcap) -> Callable[[bytes, str], Any]:
+def deserializer(reader: BagReader | SalvagedMcap) -> Callable[[bytes | memoryview, str], Any]:
     """The reader's message deserialiser, still usable by worker threads after it is closed."""
     typestore = reader.typestore
     return typestore.deserialize_cdr if reader.is2 else typestore.deserialize_ros1
@@ -197,14 +200,14 @@ class BagIndex:
 
 
 def index_bag(
-    reader: AnyReader | SalvagedMcap,
+    reader: BagReader | SalvagedMcap,
     path: Path,
     pose_topic: str | None = None,
     pose_frame: str | None = None,
 ) -> BagIndex:
     """Read the bag once: image stamps, camera infos, transforms and the optional pose topic."""
     storage = "ROS2 " + ("mcap" if _is_mcap(path) else "sqlite3") if reader.is2 else "ROS1 bag"
-    if isinstance(reader, SalvagedMcap):
+    if not isinstance(reader, Ros1Bag | Ros2Bag):  # a truncated MCAP's SalvagedMcap
         storage += " (truncated: messages of the intact chunks salvaged with the mcap package)"
     index = BagIndex(path, storage, {c.topic: c.msgtype for c in reader.connections})
     wanted = [c for c in reader.connections if _is_indexed(c, pose_topic)]
@@ -232,9 +235,9 @@ def _is_indexed(conn: Any, pose_topic: str | None) -> bool:
 
 def _index_message(
     index: BagIndex,
-    reader: AnyReader | SalvagedMcap,
+    reader: BagReader | SalvagedMcap,
     conn: Any,
-    raw: bytes,
+    raw: bytes | memoryview,
     pose_topic: str | None,
     pose_frame: str | None,
 ) -> None:
