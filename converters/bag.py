@@ -28,7 +28,6 @@ from converters.bag_index import (
     CameraInfo,
     ImageTopic,
     bag_error,
-    deserializer,
     index_bag,
     open_bag,
 )
@@ -82,7 +81,7 @@ def plan_bag(path: Path, options: BagOptions) -> BagPlan:
         raise InputError("--stride and --max-frames must be at least 1")
     with open_bag(path) as reader:
         index = index_bag(reader, path, options.pose_topic, options.pose_frame)
-        deserialize = deserializer(reader)  # types registered once, reused by the second pass
+        deserialize = reader.deserialize  # types registered once, reused by the second pass
     rgb = choose_image_topic(index, COLOR, options.rgb_topic)
     depth = choose_image_topic(index, DEPTH, options.depth_topic)
     rgb_info = choose_camera_info(index, rgb.topic, depth.topic, options.info_topic, "--info-topic")
@@ -418,6 +417,7 @@ def _stream_frames(
                 k = (rgb_wanted if conn.topic == rgb.topic else depth_wanted).get(ordinal)
                 if k is None:
                     continue
+                # a copy: a view (ROS1) would keep its whole decompressed chunk alive
                 halves.setdefault(k, {})[conn.topic] = bytes(raw)
                 while len(halves.get(next_k, ())) == 2:
                     pair = halves.pop(next_k)

@@ -11,19 +11,17 @@ from __future__ import annotations
 
 import logging
 import struct
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
-from rosbags.rosbag1 import ReaderError as Ros1ReaderError
 from rosbags.serde import SerdeError
-from rosbags.typesys import TypesysError
 
 from bgs_batch.errors import InputError
-from converters.bag_readers import BagReader, BagReadError, Ros1Bag, Ros2Bag
+from converters.bag_readers import MCAP_SUFFIX, BagReader, BagReadError, Ros1Bag, Ros2Bag
 from converters.ros_images import (
     DEPTH,
     IMAGE,
@@ -34,16 +32,13 @@ from converters.ros_images import (
 )
 from converters.ros_tf import TransformTree, frame_name, quaternion, transform_matrix, vector3
 
-if TYPE_CHECKING:
-    from converters.mcap_salvage import SalvagedMcap
-
 log = logging.getLogger(__name__)
 
 ROS1_SUFFIX = ".bag"
-MCAP_SUFFIX = ".mcap"
 ROS2_SUFFIXES = (".db3", MCAP_SUFFIX)
 ROS2_METADATA = "metadata.yaml"
-BAG_ERRORS = (BagReadError, Ros1ReaderError, SerdeError, TypesysError, struct.error)
+# what reading a damaged bag raises: storage, deserialisation, header stamps
+BAG_ERRORS = (BagReadError, SerdeError, struct.error)
 
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
@@ -81,7 +76,7 @@ def bag_error(path: Path, err: Exception) -> InputError:
 
 
 @contextmanager
-def open_bag(path: Path) -> Iterator[BagReader | SalvagedMcap]:
+def open_bag(path: Path) -> Iterator[BagReader]:
     """An open reader of a ROS1 ``.bag``, a ROS2 ``.db3``/``.mcap`` or a ROS2 bag folder.
 
     A bare ROS2 file next to its ``metadata.yaml`` is opened through its folder, which is the
@@ -107,7 +102,7 @@ def open_bag(path: Path) -> Iterator[BagReader | SalvagedMcap]:
         reader.close()
 
 
-def _salvage(path: Path, err: Exception) -> SalvagedMcap:
+def _salvage(path: Path, err: Exception) -> BagReader:
     """The intact part of a truncated MCAP; any other unreadable bag is an error."""
     files = [path] if path.suffix == MCAP_SUFFIX else sorted(path.glob(f"*{MCAP_SUFFIX}"))
     if len(files) == 1:
@@ -118,12 +113,6 @@ def _salvage(path: Path, err: Exception) -> SalvagedMcap:
             log.warning("%s: %s; converting the messages of its intact chunks", files[0], err)
             return salvaged
     raise bag_error(path, err) from err
-
-
-def deserializer(reader: BagReader | SalvagedMcap) -> Callable[[bytes | memoryview, str], Any]:
-    """The reader's message deserialiser, still usable by worker threads after it is closed."""
-    typestore = reader.typestore
-    return typestore.deserialize_cdr if reader.is2 else typestore.deserialize_ros1
 
 
 def header_stamp_ns(raw: bytes | memoryview, ros2: bool) -> int:
@@ -200,16 +189,13 @@ class BagIndex:
 
 
 def index_bag(
-    reader: BagReader | SalvagedMcap,
+    reader: BagReader,
     path: Path,
     pose_topic: str | None = None,
     pose_frame: str | None = None,
 ) -> BagIndex:
     """Read the bag once: image stamps, camera infos, transforms and the optional pose topic."""
-    storage = "ROS2 " + ("mcap" if _is_mcap(path) else "sqlite3") if reader.is2 else "ROS1 bag"
-    if not isinstance(reader, Ros1Bag | Ros2Bag):  # a truncated MCAP's SalvagedMcap
-        storage += " (truncated: messages of the intact chunks salvaged with the mcap package)"
-    index = BagIndex(path, storage, {c.topic: c.msgtype for c in reader.connections})
+    index = BagIndex(path, reader.storage, {c.topic: c.msgtype for c in reader.connections})
     wanted = [c for c in reader.connections if _is_indexed(c, pose_topic)]
     try:
         for conn, _, raw in reader.messages(connections=wanted):
@@ -217,10 +203,6 @@ def index_bag(
     except BAG_ERRORS as err:
         raise bag_error(path, err) from err
     return index
-
-
-def _is_mcap(path: Path) -> bool:
-    return path.suffix == MCAP_SUFFIX or any(Path(path).glob(f"*{MCAP_SUFFIX}"))
 
 
 def _is_indexed(conn: Any, pose_topic: str | None) -> bool:
@@ -235,7 +217,7 @@ def _is_indexed(conn: Any, pose_topic: str | None) -> bool:
 
 def _index_message(
     index: BagIndex,
-    reader: BagReader | SalvagedMcap,
+    reader: BagReader,
     conn: Any,
     raw: bytes | memoryview,
     pose_topic: str | None,

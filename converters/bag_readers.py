@@ -1,4 +1,5 @@
-"""Message readers of ROS1 and ROS2 bags, one interface for both (and for salvaged MCAPs).
+"""Message readers of ROS1 and ROS2 bags, one interface (`BagReader`) for both and for the
+salvaged part of a truncated MCAP (`converters.mcap_salvage`).
 
 A ROS1 ``.bag`` is read with rosbags' ROS1 reader alone: its index tells where every message
 sits, a chunk is read and decompressed when the time-ordered index reaches it, and messages come
@@ -7,6 +8,7 @@ Message types are registered from the bag's own definitions only when a message 
 deserialised: the converter's second pass reuses the first pass's deserialiser and never needs
 them. ROS2 bags go through rosbags' ``AnyReader``, imported only for them, since its storage
 plugins (sqlite3, MCAP, zstd, YAML) take a noticeable part of a short conversion to import.
+Storage errors of either come out as `BagReadError`.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from typing import Any, Protocol
 from rosbags.interfaces import Connection
 from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.rosbag1 import ReaderError as Ros1ReaderError
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 # ROS1 bag format 2.0: a record is (uint32 header length, header of uint32-length-prefixed
@@ -30,6 +32,8 @@ UINT32 = struct.Struct("<I")
 OP_FIELD = b"op="
 OP_MSG_DATA = 0x02
 OP_CONNECTION = 0x07  # chunks repeat a connection record before its first message
+PAST_END = "a record runs past the end of its chunk"
+MCAP_SUFFIX = ".mcap"
 
 
 class BagReadError(Exception):
@@ -37,17 +41,18 @@ class BagReadError(Exception):
 
 
 class BagReader(Protocol):
-    """What the converter uses of an open bag."""
+    """What the converter uses of an open bag. `deserialize` keeps working after `close`, so
+    worker threads can deserialise messages read by a pass that has finished."""
 
-    is2: bool
-    connections: list[Any]
-
-    @property
-    def typestore(self) -> Typestore: ...
+    is2: bool  # CDR (ROS2) rather than ROS1 serialisation
+    storage: str  # e.g. "ROS1 bag", "ROS2 mcap", for the store's provenance
+    connections: list[Any]  # each with .id, .topic and .msgtype (``pkg/msg/Name``)
 
     def messages(
         self, connections: Collection[Any] = ()
-    ) -> Iterator[tuple[Any, int, bytes | memoryview]]: ...
+    ) -> Iterator[tuple[Any, int, bytes | memoryview]]:
+        """(connection, time ns, serialised message) of the given connections (all if none)."""
+        ...
 
     def deserialize(self, raw: bytes | memoryview, msgtype: str) -> Any: ...
 
@@ -59,26 +64,35 @@ class Ros1Bag:
     as views into their decompressed chunk; only the current chunk is held."""
 
     is2 = False
+    storage = "ROS1 bag"
 
     def __init__(self, path: Path) -> None:
         self._reader = Ros1Reader(path)
-        self._reader.open()
-        self.connections: list[Connection] = self._reader.connections
+        try:
+            self._reader.open()
+        except Ros1ReaderError as err:
+            raise BagReadError(*err.args) from err
+        self.connections: list[Connection] = list(self._reader.connections)  # close clears it
 
     @cached_property
     def typestore(self) -> Typestore:
-        """The bag's message types, from the definitions its connections carry."""
+        """The bag's message types, from the definitions its connections carry, checked against
+        their md5sums as rosbags' ``AnyReader`` does."""
         types: dict[str, Any] = {}
-        for conn in self.connections:
-            types.update(get_types_from_msg(conn.msgdef.data, conn.msgtype))
-        typestore = get_typestore(Stores.EMPTY)
-        typestore.register(types)
-        for conn in self.connections:
-            digest = typestore.generate_msgdef(conn.msgtype)[1]
-            if conn.digest and digest != conn.digest:
+        digests = {}
+        try:
+            for conn in self.connections:
+                types.update(get_types_from_msg(conn.msgdef.data, conn.msgtype))
+                if conn.digest:
+                    digests[conn.msgtype] = conn.digest
+            typestore = get_typestore(Stores.EMPTY)
+            typestore.register(types)
+        except TypesysError as err:
+            raise BagReadError(f"bad message definition ({err})") from err
+        for msgtype, digest in digests.items():
+            if (have := typestore.generate_msgdef(msgtype)[1]) != digest:
                 raise BagReadError(
-                    f"message type {conn.msgtype} does not match its md5sum "
-                    f"({digest} != {conn.digest})"
+                    f"message type {msgtype} does not match its md5sum ({have} != {digest})"
                 )
         return typestore
 
@@ -124,17 +138,20 @@ class Ros1Bag:
 def _message_data(chunk: memoryview, offset: int) -> memoryview:
     """The data of the message record at `offset` of a chunk, skipping connection records."""
     while True:
-        (header_size,) = UINT32.unpack_from(chunk, offset)
-        op = _record_op(chunk, offset + UINT32.size, header_size)
-        offset += UINT32.size + header_size
-        (data_size,) = UINT32.unpack_from(chunk, offset)
+        try:
+            (header_size,) = UINT32.unpack_from(chunk, offset)
+            op = _record_op(chunk, offset + UINT32.size, header_size)
+            offset += UINT32.size + header_size
+            (data_size,) = UINT32.unpack_from(chunk, offset)
+        except struct.error as err:
+            raise BagReadError(PAST_END) from err
         offset += UINT32.size
         if offset + data_size > len(chunk):
-            raise Ros1ReaderError("a record runs past the end of its chunk")
+            raise BagReadError(PAST_END)
         if op == OP_MSG_DATA:
             return chunk[offset : offset + data_size]
         if op != OP_CONNECTION:
-            raise Ros1ReaderError(f"expected message data, found a record of type {op}")
+            raise BagReadError(f"expected message data, found a record of type {op}")
         offset += data_size
 
 
@@ -167,8 +184,11 @@ class Ros2Bag:
             self._reader.open()
         except self._errors as err:
             raise BagReadError(*err.args) from err
-        self.connections: list[Connection] = self._reader.connections
-        self.typestore: Typestore = self._reader.typestore
+        is_mcap = path.suffix == MCAP_SUFFIX or any(path.glob(f"*{MCAP_SUFFIX}"))
+        self.storage = "ROS2 mcap" if is_mcap else "ROS2 sqlite3"
+        # AnyReader clears its connections and drops its typestore on close
+        self.connections: list[Connection] = list(self._reader.connections)
+        self._typestore: Typestore = self._reader.typestore
 
     def messages(
         self, connections: Collection[Connection] = ()
@@ -180,7 +200,7 @@ class Ros2Bag:
             raise BagReadError(*err.args) from err
 
     def deserialize(self, raw: bytes | memoryview, msgtype: str) -> Any:
-        return self.typestore.deserialize_cdr(raw, msgtype)
+        return self._typestore.deserialize_cdr(raw, msgtype)
 
     def close(self) -> None:
         self._reader.close()

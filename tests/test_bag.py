@@ -13,12 +13,17 @@ from click.testing import CliRunner
 from conftest import SHARED_DATA, TUM_EXCERPT
 from mcap.writer import Writer as McapWriter
 from rosbags.rosbag1 import Reader as Ros1Reader
-from rosbags.rosbag1 import ReaderError as Ros1ReaderError
 from rosbags.typesys import Stores, get_typestore
 
 from bgs_batch.cli import main
 from bgs_batch.store import FrameStore
-from converters.bag_readers import OP_CONNECTION, OP_MSG_DATA, Ros1Bag, _message_data
+from converters.bag_readers import (
+    OP_CONNECTION,
+    OP_MSG_DATA,
+    BagReadError,
+    Ros1Bag,
+    _message_data,
+)
 from converters.bag_writer import (
     QUANT_A,
     RosMessages,
@@ -266,6 +271,13 @@ def test_ros1_reader_matches_rosbags(tmp_path, compression):
     finally:
         ours.close()
 
+    fresh = Ros1Bag(path)  # types are registered on first use, which may come after close
+    color = next(c for c in fresh.connections if c.topic == "/cam/color/image_raw")
+    _, _, raw = next(fresh.messages([color]))
+    raw = bytes(raw)
+    fresh.close()
+    assert np.array_equal(fresh.deserialize(raw, IMAGE).data, ours_msg.data)
+
 
 def _record(op: int, data: bytes) -> bytes:
     """A ROS1 bag record: header of length-prefixed ``name=value`` fields, then the data."""
@@ -279,9 +291,9 @@ def test_ros1_chunk_records():
     """A chunk may repeat a connection record before a message; anything else is an error."""
     chunk = memoryview(_record(OP_CONNECTION, b"topic=/x") + _record(OP_MSG_DATA, b"payload"))
     assert bytes(_message_data(chunk, 0)) == b"payload"
-    with pytest.raises(Ros1ReaderError, match="type 5"):
+    with pytest.raises(BagReadError, match="type 5"):
         _message_data(memoryview(_record(5, b"")), 0)
-    with pytest.raises(Ros1ReaderError, match="past the end"):
+    with pytest.raises(BagReadError, match="past the end"):
         _message_data(chunk[:-1], 0)
 
 
@@ -425,6 +437,19 @@ def test_truncated_bag_is_reported(tmp_path):
     bag.write_bytes(data[: len(data) * 6 // 10])
     out = tmp_path / "out.h5"
     assert_fails(convert(bag, out), str(bag), "truncated", "reindex")
+    _assert_no_output(out)
+
+
+def test_corrupt_ros1_chunk_is_reported(tmp_path):
+    bag = _tiny_bag(tmp_path / "rec.bag", compression="bz2")
+    with Ros1Reader(bag) as reader:
+        chunk = next(iter(reader.chunks.values()))
+    data = bytearray(bag.read_bytes())
+    middle = chunk.datapos + chunk.datasize // 2
+    data[middle : middle + 8] = bytes(8)  # bz2's block CRC no longer matches
+    bag.write_bytes(bytes(data))
+    out = tmp_path / "out.h5"
+    assert_fails(convert(bag, out), str(bag), "cannot be decompressed", "reindex")
     _assert_no_output(out)
 
 

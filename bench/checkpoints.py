@@ -1,7 +1,7 @@
 """Cost of checkpointed, resumable jobs (issue P4): checkpoint time and size, cadence overhead,
 resume latency.
 
-Usage: .venv/bin/python bench/jobs.py [--tum DIR] [--frames 30]
+Usage: .venv/bin/python bench/checkpoints.py [--tum DIR] [--frames 30]
 
 On the real TUM fr1/rpy excerpt in ../shared/data (a synthetic room when it is absent), `cpu`
 preset, all numbers from one run:
@@ -34,18 +34,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-# This script is bench/jobs.py: with bench/ first on sys.path, `import jobs` would import it
-# instead of the jobs package, so bench/ leaves the path before the package imports below.
-_BENCH_DIR = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _BENCH_DIR]
-
-import jobs.run as job_run  # noqa: E402
-from bgs_batch.config import Config, load_config  # noqa: E402
-from converters.pipeline import write_store  # noqa: E402
-from converters.synthetic import SynthConfig, synthesize  # noqa: E402
-from converters.tum import TumOptions, plan_tum  # noqa: E402
-from jobs.checkpoint import CHECKPOINT_DIR  # noqa: E402
-from jobs.run import LOG_FILE, RunSummary, run_job  # noqa: E402
+import jobs.run as job_run
+from bgs_batch.config import Config, load_config
+from converters.pipeline import write_store
+from converters.synthetic import SynthConfig, synthesize
+from converters.tum import TumOptions, plan_tum
+from jobs.checkpoint import CHECKPOINT_DIR
+from jobs.run import LOG_FILE, RunSummary, run_job
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEFAULT_TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_rpy"
@@ -221,7 +216,10 @@ def main() -> None:
         uninterrupted_equal = same_result(tmp / "never", tmp / "default")
 
     frames = default.frames
-    print(f"bench/jobs.py: {name}, {frames} frames, {PRESET} preset, load average before: {load}")
+    print(
+        f"bench/checkpoints.py: {name}, {frames} frames, {PRESET} preset, "
+        f"load average before: {load}"
+    )
     widths = [14, 11, 12, 13, 11, 11]
     print_table(
         f"\ncheckpoints of one run (checkpoint_every = {DEFAULT_CADENCE}):",
