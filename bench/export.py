@@ -21,17 +21,12 @@ import tempfile
 import time
 from pathlib import Path
 
-# bench/ holds a jobs.py: with bench/ first on sys.path, `import jobs` would import that script
-# instead of the jobs package, so bench/ leaves the path before the package imports below.
-_BENCH_DIR = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _BENCH_DIR]
-
-from bgs_batch.config import load_config  # noqa: E402
-from converters.pipeline import write_store  # noqa: E402
-from converters.synthetic import SynthConfig, synthesize  # noqa: E402
-from converters.tum import TumOptions, plan_tum  # noqa: E402
-from jobs.run import run_job  # noqa: E402
-from outputs.export import RUN_DEFAULTS, ExportOptions, export_job  # noqa: E402
+from bgs_batch.config import load_config
+from converters.pipeline import write_store
+from converters.synthetic import SynthConfig, synthesize
+from converters.tum import TumOptions, plan_tum
+from jobs.run import run_job
+from outputs.export import RUN_DEFAULTS, ExportOptions, export_job
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEFAULT_TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_rpy"

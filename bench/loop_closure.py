@@ -20,25 +20,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 from pathlib import Path
 
-# bench/jobs.py would shadow the jobs package when bench/ is first on sys.path (as it is for
-# `python bench/loop_closure.py`), so bench/ leaves the path before the package imports.
-_BENCH_DIR = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _BENCH_DIR]
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from bgs_batch.config import load_config  # noqa: E402
-from bgs_batch.loop_closure.evaluation import accepted_loops, is_true_loop, submap_frames  # noqa: E402
-from bgs_batch.store import FrameStore  # noqa: E402
-from converters.pipeline import write_store  # noqa: E402
-from converters.synthetic import SynthConfig, synthesize  # noqa: E402
-from converters.tum import TumOptions, plan_tum  # noqa: E402
-from jobs.checkpoint import load_latest  # noqa: E402
-from jobs.run import RunSummary, run_job  # noqa: E402
+from bgs_batch.config import load_config
+from bgs_batch.loop_closure.evaluation import accepted_loops, is_true_loop, submap_frames
+from bgs_batch.store import FrameStore
+from converters.pipeline import write_store
+from converters.synthetic import SynthConfig, synthesize
+from converters.tum import TumOptions, plan_tum
+from jobs.checkpoint import load_latest
+from jobs.run import RunSummary, run_job
 
 FPS = 10.0  # a handheld pace of 2.5 cm per frame at the default speed
 SPEED = 0.25  # m/s

@@ -168,6 +168,9 @@ class FrameStoreWriter:
         self._poses: list[np.ndarray] = []
         self._shape: tuple[int, int] | None = None
         self._depth_dtype: np.dtype | None = None
+        # (rgb, depth) dataset handles and frame shapes: looking them up per frame costs more
+        # than writing the frame's chunks
+        self._datasets: tuple[tuple[h5py.h5d.DatasetID, tuple[int, ...]], ...] = ()
 
     def __enter__(self) -> FrameStoreWriter:
         return self
@@ -182,14 +185,15 @@ class FrameStoreWriter:
     def _create_datasets(self, frame: EncodedFrame) -> None:
         h, w = frame.shape
         self._shape, self._depth_dtype = frame.shape, frame.depth_dtype
-        self._file.create_dataset(
+        rgb = self._file.create_dataset(
             "rgb", (0, h, w, 3), np.uint8, maxshape=(None, h, w, 3), chunks=(1, h, w, 3),
             compression="gzip", compression_opts=self.level,
         )  # fmt: skip
-        self._file.create_dataset(
+        depth = self._file.create_dataset(
             "depth", (0, h, w), frame.depth_dtype, maxshape=(None, h, w), chunks=(1, h, w),
             compression="gzip", compression_opts=self.level, shuffle=True,
         )  # fmt: skip
+        self._datasets = ((rgb.id, (h, w, 3)), (depth.id, (h, w)))
 
     def append(self, frame: EncodedFrame, source: str = "") -> None:
         """Append an encoded frame; `source` names its file(s) in error messages."""
@@ -203,10 +207,11 @@ class FrameStoreWriter:
                 "camera: convert the parts separately or drop the odd frames"
             )
         n = len(self)
-        for name, chunk in (("rgb", frame.rgb_chunk), ("depth", frame.depth_chunk)):
-            ds = self._file[name]
-            ds.resize(n + 1, axis=0)
-            ds.id.write_direct_chunk((n,) + (0,) * (ds.ndim - 1), chunk)
+        for (dataset, frame_shape), chunk in zip(
+            self._datasets, (frame.rgb_chunk, frame.depth_chunk), strict=True
+        ):
+            dataset.set_extent((n + 1, *frame_shape))
+            dataset.write_direct_chunk((n,) + (0,) * len(frame_shape), chunk)
         self._timestamps.append(frame.timestamp)
         self._poses.append(np.full((4, 4), np.nan) if frame.pose_gt is None else frame.pose_gt)
 

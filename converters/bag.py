@@ -28,7 +28,6 @@ from converters.bag_index import (
     CameraInfo,
     ImageTopic,
     bag_error,
-    deserializer,
     index_bag,
     open_bag,
 )
@@ -82,6 +81,7 @@ def plan_bag(path: Path, options: BagOptions) -> BagPlan:
         raise InputError("--stride and --max-frames must be at least 1")
     with open_bag(path) as reader:
         index = index_bag(reader, path, options.pose_topic, options.pose_frame)
+        deserialize = reader.deserialize  # types registered once, reused by the second pass
     rgb = choose_image_topic(index, COLOR, options.rgb_topic)
     depth = choose_image_topic(index, DEPTH, options.depth_topic)
     rgb_info = choose_camera_info(index, rgb.topic, depth.topic, options.info_topic, "--info-topic")
@@ -132,7 +132,8 @@ def plan_bag(path: Path, options: BagOptions) -> BagPlan:
         has_gt=poses is not None,
         provenance=provenance,
     )
-    frames = _stream_frames(path, rgb, depth, pairs, stamps, poses, registration)
+    decoder = PairDecoder(path, rgb, depth, registration, deserialize)
+    frames = _stream_frames(path, rgb, depth, pairs, stamps, poses, decoder)
     return BagPlan(frames, len(pairs), meta)
 
 
@@ -359,7 +360,7 @@ class PairDecoder:
     rgb: ImageTopic
     depth: ImageTopic
     registration: DepthRegistration | None
-    deserialize: Callable[[bytes, str], Any]
+    deserialize: Callable[[bytes | memoryview, str], Any]
 
     def __call__(self, rgb_raw: bytes, depth_raw: bytes, name: str) -> tuple[np.ndarray, ...]:
         try:
@@ -389,13 +390,13 @@ def _stream_frames(
     pairs: np.ndarray,
     stamps: np.ndarray,
     poses: np.ndarray | None,
-    registration: DepthRegistration | None,
+    decoder: PairDecoder,
 ) -> Iterator[SourceFrame]:
     """Second pass: yield the associated pairs in order, as soon as both halves were read."""
     rgb_wanted = {int(i): k for k, i in enumerate(pairs[:, 0])}
     depth_wanted = {int(j): k for k, j in enumerate(pairs[:, 1])}
 
-    def frame(k: int, rgb_raw: bytes, depth_raw: bytes, decoder: PairDecoder) -> SourceFrame:
+    def frame(k: int, rgb_raw: bytes, depth_raw: bytes) -> SourceFrame:
         i, j = pairs[k]
         name = (
             f"{rgb.topic} @ {rgb.stamps[i] / NS_PER_S:.6f} s + "
@@ -405,7 +406,6 @@ def _stream_frames(
         return SourceFrame(name, float(stamps[k]), pose, partial(decoder, rgb_raw, depth_raw, name))
 
     with open_bag(path) as reader:
-        decoder = PairDecoder(path, rgb, depth, registration, deserializer(reader))
         connections = [c for c in reader.connections if c.topic in (rgb.topic, depth.topic)]
         seen = {rgb.topic: 0, depth.topic: 0}
         halves: dict[int, dict[str, bytes]] = {}
@@ -417,10 +417,11 @@ def _stream_frames(
                 k = (rgb_wanted if conn.topic == rgb.topic else depth_wanted).get(ordinal)
                 if k is None:
                     continue
+                # a copy: a view (ROS1) would keep its whole decompressed chunk alive
                 halves.setdefault(k, {})[conn.topic] = bytes(raw)
                 while len(halves.get(next_k, ())) == 2:
                     pair = halves.pop(next_k)
-                    yield frame(next_k, pair[rgb.topic], pair[depth.topic], decoder)
+                    yield frame(next_k, pair[rgb.topic], pair[depth.topic])
                     next_k += 1
                 if next_k == len(pairs):
                     return

@@ -1,4 +1,4 @@
-"""Open ROS1/ROS2 bags with rosbags, and index one in a first pass without decoding any pixels.
+"""Open ROS1/ROS2 bags, and index one in a first pass without decoding any pixels.
 
 The index holds what the converter must decide before streaming frames: each image topic's kind,
 encoding and header stamps, the cameras' ``CameraInfo``, the static transforms (``/tf_static``,
@@ -11,20 +11,17 @@ from __future__ import annotations
 
 import logging
 import struct
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rosbags.highlevel import AnyReader, AnyReaderError
-from rosbags.rosbag1 import ReaderError as Ros1ReaderError
-from rosbags.rosbag2 import ReaderError as Ros2ReaderError
 from rosbags.serde import SerdeError
 
 from bgs_batch.errors import InputError
-from converters.mcap_salvage import SalvagedMcap
+from converters.bag_readers import MCAP_SUFFIX, BagReader, BagReadError, Ros1Bag, Ros2Bag
 from converters.ros_images import (
     DEPTH,
     IMAGE,
@@ -38,10 +35,10 @@ from converters.ros_tf import TransformTree, frame_name, quaternion, transform_m
 log = logging.getLogger(__name__)
 
 ROS1_SUFFIX = ".bag"
-MCAP_SUFFIX = ".mcap"
 ROS2_SUFFIXES = (".db3", MCAP_SUFFIX)
 ROS2_METADATA = "metadata.yaml"
-BAG_ERRORS = (AnyReaderError, Ros1ReaderError, Ros2ReaderError, SerdeError, struct.error)
+# what reading a damaged bag raises: storage, deserialisation, header stamps
+BAG_ERRORS = (BagReadError, SerdeError, struct.error)
 
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
@@ -79,8 +76,8 @@ def bag_error(path: Path, err: Exception) -> InputError:
 
 
 @contextmanager
-def open_bag(path: Path) -> Iterator[AnyReader | SalvagedMcap]:
-    """An open rosbags ``AnyReader`` for a ROS1 ``.bag``, a ROS2 ``.db3``/``.mcap`` or folder.
+def open_bag(path: Path) -> Iterator[BagReader]:
+    """An open reader of a ROS1 ``.bag``, a ROS2 ``.db3``/``.mcap`` or a ROS2 bag folder.
 
     A bare ROS2 file next to its ``metadata.yaml`` is opened through its folder, which is the
     only way rosbags can read message-compressed bags. A truncated MCAP is salvaged instead.
@@ -96,8 +93,7 @@ def open_bag(path: Path) -> Iterator[AnyReader | SalvagedMcap]:
             f"file, or a ROS2 bag folder holding {ROS2_METADATA}"
         )
     try:
-        reader = AnyReader([path])
-        reader.open()
+        reader = Ros1Bag(path) if path.suffix == ROS1_SUFFIX else Ros2Bag(path)
     except BAG_ERRORS as err:
         reader = _salvage(path, err)
     try:
@@ -106,21 +102,17 @@ def open_bag(path: Path) -> Iterator[AnyReader | SalvagedMcap]:
         reader.close()
 
 
-def _salvage(path: Path, err: Exception) -> SalvagedMcap:
+def _salvage(path: Path, err: Exception) -> BagReader:
     """The intact part of a truncated MCAP; any other unreadable bag is an error."""
     files = [path] if path.suffix == MCAP_SUFFIX else sorted(path.glob(f"*{MCAP_SUFFIX}"))
     if len(files) == 1:
+        from converters.mcap_salvage import SalvagedMcap  # rarely needed: imported on demand
+
         salvaged = SalvagedMcap(files[0])
         if salvaged.connections:
             log.warning("%s: %s; converting the messages of its intact chunks", files[0], err)
             return salvaged
     raise bag_error(path, err) from err
-
-
-def deserializer(reader: AnyReader | SalvagedMcap) -> Callable[[bytes, str], Any]:
-    """The reader's message deserialiser, still usable by worker threads after it is closed."""
-    typestore = reader.typestore
-    return typestore.deserialize_cdr if reader.is2 else typestore.deserialize_ros1
 
 
 def header_stamp_ns(raw: bytes | memoryview, ros2: bool) -> int:
@@ -197,16 +189,13 @@ class BagIndex:
 
 
 def index_bag(
-    reader: AnyReader | SalvagedMcap,
+    reader: BagReader,
     path: Path,
     pose_topic: str | None = None,
     pose_frame: str | None = None,
 ) -> BagIndex:
     """Read the bag once: image stamps, camera infos, transforms and the optional pose topic."""
-    storage = "ROS2 " + ("mcap" if _is_mcap(path) else "sqlite3") if reader.is2 else "ROS1 bag"
-    if isinstance(reader, SalvagedMcap):
-        storage += " (truncated: messages of the intact chunks salvaged with the mcap package)"
-    index = BagIndex(path, storage, {c.topic: c.msgtype for c in reader.connections})
+    index = BagIndex(path, reader.storage, {c.topic: c.msgtype for c in reader.connections})
     wanted = [c for c in reader.connections if _is_indexed(c, pose_topic)]
     try:
         for conn, _, raw in reader.messages(connections=wanted):
@@ -214,10 +203,6 @@ def index_bag(
     except BAG_ERRORS as err:
         raise bag_error(path, err) from err
     return index
-
-
-def _is_mcap(path: Path) -> bool:
-    return path.suffix == MCAP_SUFFIX or any(Path(path).glob(f"*{MCAP_SUFFIX}"))
 
 
 def _is_indexed(conn: Any, pose_topic: str | None) -> bool:
@@ -232,9 +217,9 @@ def _is_indexed(conn: Any, pose_topic: str | None) -> bool:
 
 def _index_message(
     index: BagIndex,
-    reader: AnyReader | SalvagedMcap,
+    reader: BagReader,
     conn: Any,
-    raw: bytes,
+    raw: bytes | memoryview,
     pose_topic: str | None,
     pose_frame: str | None,
 ) -> None:

@@ -2,8 +2,8 @@
 
 rosbags needs the MCAP summary and refuses such files ("File end magic is invalid"); the ``mcap``
 package's stream reader still walks the records from the start, so every message of the intact
-chunks can be recovered. `SalvagedMcap` offers the part of rosbags' ``AnyReader`` interface the
-converter uses, with types registered from the file's own ``ros2msg`` schemas.
+chunks can be recovered. `SalvagedMcap` is a `converters.bag_readers.BagReader`, with types
+registered from the file's own ``ros2msg`` schemas.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any
 from mcap.exceptions import McapError
 from mcap.records import Channel, McapRecord, Message, Schema
 from mcap.stream_reader import StreamReader
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, TypesysError, get_typestore
 from rosbags.typesys.msg import get_types_from_msg
 
 ROS2_SCHEMA_ENCODING = "ros2msg"
@@ -36,6 +36,7 @@ class SalvagedMcap:
     """The intact messages of a truncated ROS2 MCAP file, in file order."""
 
     is2 = True
+    storage = "ROS2 mcap (truncated: messages of the intact chunks salvaged with the mcap package)"
 
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
@@ -45,8 +46,12 @@ class SalvagedMcap:
         schemas: dict[int, Schema] = {}
         for record in self._records():
             if isinstance(record, Schema) and record.encoding == ROS2_SCHEMA_ENCODING:
+                try:
+                    types = get_types_from_msg(record.data.decode(), record.name)
+                    self.typestore.register(types)
+                except (TypesysError, UnicodeDecodeError):  # a damaged schema: skip its channels
+                    continue
                 schemas[record.id] = record
-                self.typestore.register(get_types_from_msg(record.data.decode(), record.name))
             elif (
                 isinstance(record, Channel)
                 and record.message_encoding == CDR_ENCODING
@@ -78,7 +83,7 @@ class SalvagedMcap:
             if isinstance(record, Message) and record.channel_id in wanted:
                 yield self._by_id[record.channel_id], record.log_time, record.data
 
-    def deserialize(self, raw: bytes, msgtype: str) -> Any:
+    def deserialize(self, raw: bytes | memoryview, msgtype: str) -> Any:
         return self.typestore.deserialize_cdr(raw, msgtype)
 
     def close(self) -> None:

@@ -3,6 +3,7 @@ write chunks in order, drop or refuse bad frames, and leave nothing behind on fa
 
 from __future__ import annotations
 
+import os
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -25,6 +26,8 @@ from bgs_batch.store import (
 
 DEFAULT_WORKERS = 2
 IN_FLIGHT_PER_WORKER = 2  # frames decoded ahead per worker: bounds memory, keeps cores busy
+FLUSH_EVERY_FRAMES = 16  # frames between background flushes of the store being written
+_sync_data = getattr(os, "fdatasync", os.fsync)
 
 
 @dataclass(frozen=True)
@@ -86,6 +89,7 @@ def _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progre
     with (
         FrameStoreWriter(out, meta, overwrite=overwrite, level=level) as writer,
         ThreadPoolExecutor(max(1, workers)) as pool,
+        _BackgroundFlush(temp_path(out)) as flush,
     ):
         pending: deque[tuple[SourceFrame, Future[EncodedFrame]]] = deque()
 
@@ -93,6 +97,7 @@ def _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progre
             frame, future = pending.popleft()
             try:
                 writer.append(future.result(), frame.name)
+                flush.frame_written(len(writer))
             except InputError as err:
                 if not skip_bad_frames:
                     pool.shutdown(cancel_futures=True)
@@ -118,3 +123,28 @@ def _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progre
         path = writer.finish()
     return ConversionReport(path, frames=len(writer), seconds=time.perf_counter() - start,
                             skipped=skipped)  # fmt: skip
+
+
+class _BackgroundFlush:
+    """Writes the store being built to disk on a helper thread as it grows, so the fsync that
+    makes the finished store durable has little left to write instead of the whole store.
+
+    A failed flush is not reported here: the writer's own fsync fails the same way.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self._fd = os.open(path, os.O_RDONLY)
+        self._helper = ThreadPoolExecutor(1)
+        self._running: Future[None] | None = None
+
+    def __enter__(self) -> _BackgroundFlush:
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self._helper.shutdown(wait=True)
+        os.close(self._fd)
+
+    def frame_written(self, count: int) -> None:
+        """Start a flush every `FLUSH_EVERY_FRAMES` frames, unless the last one still runs."""
+        if count % FLUSH_EVERY_FRAMES == 0 and (self._running is None or self._running.done()):
+            self._running = self._helper.submit(_sync_data, self._fd)

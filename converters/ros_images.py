@@ -122,7 +122,7 @@ def _raw_pixels(msg: Any, dtype: np.dtype, channels: int) -> np.ndarray:
 
 
 def _decode_compressed_depth(msg: Any) -> np.ndarray:
-    data = bytes(msg.data)
+    data = np.frombuffer(msg.data, np.uint8)  # a view: no copy of the payload
     if "rvl" in msg.format.lower():
         raise ImageDecodeError(
             f"compressedDepth format {msg.format!r} (RVL) is not supported; "
@@ -131,7 +131,7 @@ def _decode_compressed_depth(msg: Any) -> np.ndarray:
     if len(data) <= COMPRESSED_DEPTH_HEADER.size:
         raise ImageDecodeError(f"compressedDepth message of {len(data)} bytes has no payload")
     kind, quant_a, quant_b = COMPRESSED_DEPTH_HEADER.unpack_from(data)
-    payload = np.frombuffer(data, np.uint8, offset=COMPRESSED_DEPTH_HEADER.size)
+    payload = data[COMPRESSED_DEPTH_HEADER.size :]
     values = _require_uint16(_imdecode(payload, cv2.IMREAD_UNCHANGED, msg.format), msg.format)
     if depth_encoding(COMPRESSED_IMAGE, msg) != "32FC1":
         return values
@@ -144,7 +144,8 @@ def _decode_compressed_depth(msg: Any) -> np.ndarray:
 
 
 def _imdecode(data: Any, flags: int, fmt: str) -> np.ndarray:
-    image = cv2.imdecode(np.frombuffer(bytes(data), np.uint8), flags)
+    """Decode a JPEG/PNG held in any bytes-like object or uint8 array, without copying it."""
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     if image is None:
         raise ImageDecodeError(f"corrupt or truncated {fmt or 'compressed'} image data")
     return image

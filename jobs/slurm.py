@@ -1,10 +1,16 @@
 """`bgs submit`: one Slurm array job over many frame stores, pre-emption safe.
 
 Each array task runs ``bgs run STORE --job-dir JOB_ROOT/<store name>``. Slurm sends SIGUSR1 to
-the batch shell 120 s before the time limit (``--signal=B:USR1@120``) and SIGTERM on
-pre-emption; the shell forwards both to ``bgs run``, which finishes its frame, checkpoints and
-exits with 75; the shell then requeues the task (``--requeue``), and the requeued task resumes
-from the checkpoint. A task that finished returns at once when requeued.
+the batch shell 120 s before the time limit (``--signal=B:USR1@120``); the shell forwards it to
+``bgs run``, which finishes its frame, checkpoints and exits with 75, and the shell then
+requeues its own task (``--requeue``); the requeued task resumes from the checkpoint.
+
+SIGTERM (pre-emption, ``scontrol requeue``, ``scancel``) also makes ``bgs run`` checkpoint and
+exit with 75, but the shell does not requeue then: Slurm already requeues a pre-empted or
+requeued job itself, and a cancelled job must stay cancelled (a later ``bgs submit`` of the same
+stores resumes it). Real Slurm (22.05) showed why the task is named ``<array id>_<task id>``:
+``scontrol requeue $SLURM_JOB_ID`` in the task whose job id equals the array's id requeues the
+whole array, killing its running siblings. A task that finished returns at once when requeued.
 """
 
 from __future__ import annotations
@@ -19,6 +25,9 @@ from bgs_batch.errors import BgsError, InputError
 from jobs.signals import PREEMPTED_EXIT
 
 WARNING_SECONDS = 120
+# this task alone: one task's $SLURM_JOB_ID (22.05: the last task's) is the array id, and
+# `scontrol requeue <array id>` requeues every task of the array
+TASK_ID = "${SLURM_ARRAY_JOB_ID}_${SLURM_ARRAY_TASK_ID}"
 
 
 @dataclass(frozen=True)
@@ -57,6 +66,7 @@ def sbatch_script(stores: list[Path], job_root: Path, options: SubmitOptions) ->
         "--requeue",
         "--open-mode=append",
         f"--output={job_root.resolve()}/slurm-%A_%a.out",
+        f"--chdir={job_root.resolve()}",  # the submit directory may not exist on the node
     ]
     if options.partition:
         directives.append(f"--partition={options.partition}")
@@ -78,11 +88,15 @@ def sbatch_script(stores: list[Path], job_root: Path, options: SubmitOptions) ->
         "",
         f'{bgs} -q run "$store" --job-dir "$job" {" ".join(run_args)} &',
         "child=$!",
-        "# forward Slurm's warning (USR1) and pre-emption (TERM): bgs checkpoints and exits",
-        "trap 'kill -USR1 \"$child\" 2>/dev/null' USR1 TERM",
+        "# forward Slurm's time-limit warning (USR1) and TERM (pre-emption, requeue, scancel):",
+        "# bgs checkpoints and exits 75; only after the warning does this task requeue itself",
+        "signal=",
+        "trap 'signal=USR1; kill -USR1 \"$child\" 2>/dev/null' USR1",
+        "trap 'signal=TERM; kill -TERM \"$child\" 2>/dev/null' TERM",
         'while true; do wait "$child"; rc=$?; kill -0 "$child" 2>/dev/null || break; done',
-        f'if [ "$rc" -eq {PREEMPTED_EXIT} ]; then',
-        '    scontrol requeue "$SLURM_JOB_ID"',
+        f'if [ "$rc" -eq {PREEMPTED_EXIT} ] && [ "$signal" = USR1 ]; then',
+        f'    scontrol requeue "{TASK_ID}" || echo "bgs: requeue of {TASK_ID} failed; run'
+        ' the same bgs submit again to resume" >&2',
         "fi",
         'exit "$rc"',
         "",

@@ -12,10 +12,18 @@ import pytest
 from click.testing import CliRunner
 from conftest import SHARED_DATA, TUM_EXCERPT
 from mcap.writer import Writer as McapWriter
+from rosbags.rosbag1 import Reader as Ros1Reader
 from rosbags.typesys import Stores, get_typestore
 
 from bgs_batch.cli import main
 from bgs_batch.store import FrameStore
+from converters.bag_readers import (
+    OP_CONNECTION,
+    OP_MSG_DATA,
+    BagReadError,
+    Ros1Bag,
+    _message_data,
+)
 from converters.bag_writer import (
     QUANT_A,
     RosMessages,
@@ -222,6 +230,73 @@ def _realsense_first_depth(path: Path) -> np.ndarray:
         return decode_depth(IMAGE, reader.deserialize(raw, IMAGE))
 
 
+# --- the ROS1 reader ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("compression", [None, "lz4", "bz2"])
+def test_ros1_reader_matches_rosbags(tmp_path, compression):
+    """Same messages, bytes and order (receive time, then connection) as rosbags' AnyReader, over
+    several chunks and with depth received before the colour frame written ahead of it."""
+    from rosbags.highlevel import AnyReader
+
+    path = tmp_path / "order.bag"
+    rng = np.random.default_rng(0)
+    with bag_writer(path, "ros1", compression) as bag:  # > 1 MB: several chunks
+        bag.camera_info("/cam/color/camera_info", 1, RGB_FRAME, np.eye(3), (128, 96))
+        for i in range(40):
+            stamp = 10**9 + i * 33_000_000
+            rgb = rng.integers(0, 256, (96, 128, 3), np.uint8)
+            bag.image("/cam/color/image_raw", stamp, RGB_FRAME, rgb, "rgb8")
+            depth = np.full((96, 128), i, np.uint16)
+            bag.image("/cam/depth/image_raw", stamp - 5_000_000, RGB_FRAME, depth, "16UC1")
+            bag.transform(stamp, "world", "cam", (i, 0, 0), (0, 0, 0, 1), topic="/tf")
+
+    with Ros1Reader(path) as plain:
+        assert len(plain.chunks) > 1
+
+    def listing(messages) -> list[tuple[str, int, bytes]]:
+        return [(conn.topic, time, bytes(raw)) for conn, time, raw in messages]
+
+    ours = Ros1Bag(path)
+    try:
+        images = [c for c in ours.connections if c.topic.endswith("image_raw")][::-1]
+        with AnyReader([path]) as ref:
+            ref_images = [c for c in ref.connections if c.topic.endswith("image_raw")][::-1]
+            assert listing(ours.messages()) == listing(ref.messages())
+            assert listing(ours.messages(images)) == listing(ref.messages(ref_images))
+            _, _, raw = next(ours.messages(images[1:]))
+            _, _, ref_raw = next(ref.messages(ref_images[1:]))
+            ours_msg = ours.deserialize(raw, IMAGE)
+            assert np.array_equal(ours_msg.data, ref.deserialize(ref_raw, IMAGE).data)
+    finally:
+        ours.close()
+
+    fresh = Ros1Bag(path)  # types are registered on first use, which may come after close
+    color = next(c for c in fresh.connections if c.topic == "/cam/color/image_raw")
+    _, _, raw = next(fresh.messages([color]))
+    raw = bytes(raw)
+    fresh.close()
+    assert np.array_equal(fresh.deserialize(raw, IMAGE).data, ours_msg.data)
+
+
+def _record(op: int, data: bytes) -> bytes:
+    """A ROS1 bag record: header of length-prefixed ``name=value`` fields, then the data."""
+    fields = b"".join(
+        len(f).to_bytes(4, "little") + f for f in (b"conn=" + bytes(4), b"op=" + bytes([op]))
+    )
+    return len(fields).to_bytes(4, "little") + fields + len(data).to_bytes(4, "little") + data
+
+
+def test_ros1_chunk_records():
+    """A chunk may repeat a connection record before a message; anything else is an error."""
+    chunk = memoryview(_record(OP_CONNECTION, b"topic=/x") + _record(OP_MSG_DATA, b"payload"))
+    assert bytes(_message_data(chunk, 0)) == b"payload"
+    with pytest.raises(BagReadError, match="type 5"):
+        _message_data(memoryview(_record(5, b"")), 0)
+    with pytest.raises(BagReadError, match="past the end"):
+        _message_data(chunk[:-1], 0)
+
+
 # --- registration via /tf_static, decoders ----------------------------------------------------
 
 
@@ -362,6 +437,19 @@ def test_truncated_bag_is_reported(tmp_path):
     bag.write_bytes(data[: len(data) * 6 // 10])
     out = tmp_path / "out.h5"
     assert_fails(convert(bag, out), str(bag), "truncated", "reindex")
+    _assert_no_output(out)
+
+
+def test_corrupt_ros1_chunk_is_reported(tmp_path):
+    bag = _tiny_bag(tmp_path / "rec.bag", compression="bz2")
+    with Ros1Reader(bag) as reader:
+        chunk = next(iter(reader.chunks.values()))
+    data = bytearray(bag.read_bytes())
+    middle = chunk.datapos + chunk.datasize // 2
+    data[middle : middle + 8] = bytes(8)  # bz2's block CRC no longer matches
+    bag.write_bytes(bytes(data))
+    out = tmp_path / "out.h5"
+    assert_fails(convert(bag, out), str(bag), "cannot be decompressed", "reindex")
     _assert_no_output(out)
 
 
