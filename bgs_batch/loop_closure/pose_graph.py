@@ -17,7 +17,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import open3d as o3d
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -87,6 +86,8 @@ class Optimised:
 
 def optimise(initial: np.ndarray, edges: list[Edge], cfg: LoopClosureConfig) -> Optimised:
     """Levenberg-Marquardt over the graph from `initial` node poses; node 0 keeps its pose."""
+    import open3d as o3d  # ~1 s to import: only when a loop is closed, not on every job start
+
     graph = o3d.pipelines.registration.PoseGraph()
     for pose in initial:
         graph.nodes.append(o3d.pipelines.registration.PoseGraphNode(pose))
