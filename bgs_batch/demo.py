@@ -31,7 +31,7 @@ class DemoConfig:
     """Where the demo writes and how large its sequence is (small enough for minutes on 2 cores)."""
 
     workdir: Path = Path("demo")
-    frames: int = 40
+    frames: int = 30  # the CLI's DEMO_FRAMES
     width: int = 320
     height: int = 240
     seed: int = 0
