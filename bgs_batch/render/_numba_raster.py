@@ -168,6 +168,15 @@ def tile_lanes(xs, ys, px0, py0, lane_x, lane_y):
         lane_y[p] = ys[py0 + p // TILE_SIZE]
 
 
+@numba.njit(cache=True)
+def lane_span(rects, g, py0, py1):
+    """Lanes ``p0:p1`` (unsigned, whole tile rows) of Gaussian g's box rows in the tile whose
+    pixel rows are ``py0:py1``."""
+    p0 = np.uint64((max(rects[g, 2], py0) - py0) * TILE_SIZE)
+    p1 = np.uint64((min(rects[g, 3] + 1, py1) - py0) * TILE_SIZE)
+    return p0, p1
+
+
 @numba.njit(cache=True, fastmath=FASTMATH)
 def sigma_rows(lane_x, lane_y, p0, p1, mx, my, a, b, c, sigma_max, half, out):
     """``out = min(σ, σ_max)`` with ``σ = ½(a dx² + c dy²) + b dx dy`` on lanes ``p0:p1``."""
@@ -236,8 +245,7 @@ def raster_fwd(
                 g = isect_gauss[k]
                 o, v = opacities[g], variances[g]
                 x0, x1 = xs[rects[g, 0]], xs[rects[g, 1]]
-                p0 = np.uint64((max(rects[g, 2], py0) - py0) * TILE_SIZE)
-                p1 = np.uint64((min(rects[g, 3] + 1, py1) - py0) * TILE_SIZE)
+                p0, p1 = lane_span(rects, g, py0, py1)
                 sigma_rows(
                     lane_x, lane_y, p0, p1, means2d[g, 0], means2d[g, 1],
                     conics[g, 0], conics[g, 1], conics[g, 2], sigma_max, half, alphas,
@@ -398,8 +406,7 @@ def raster_bwd(
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 o, v = opacities[g], variances[g]
                 x0, x1 = xs[rects[g, 0]], xs[rects[g, 1]]
-                p0 = np.uint64((max(rects[g, 2], py0) - py0) * TILE_SIZE)
-                p1 = np.uint64((min(rects[g, 3] + 1, py1) - py0) * TILE_SIZE)
+                p0, p1 = lane_span(rects, g, py0, py1)
                 sigma_rows(lane_x, lane_y, p0, p1, mx, my, a, b, c, sigma_max, half, gauss)
                 exp_neg_rows(gauss, p0, p1, fast_exp, consts)
                 kk = np.int32(k)
