@@ -48,11 +48,17 @@ def _blur_kernel(src, taps, tmp, out):
                     acc[x] += t * row[x]
 
 
+def blur_planes(src: np.ndarray, taps: np.ndarray) -> np.ndarray:
+    """Blur each of the contiguous [N,H,W] planes with the separable window ``taps`` (same
+    dtype), zero padding; a new array."""
+    tmp, out = np.empty_like(src), np.empty_like(src)
+    _blur_kernel(src, taps, tmp, out)
+    return out
+
+
 def _blur(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
     src = images.detach().contiguous().numpy()
-    tmp, out = np.empty_like(src), np.empty_like(src)
-    _blur_kernel(src, taps.detach().numpy().astype(src.dtype), tmp, out)
-    return torch.from_numpy(out)
+    return torch.from_numpy(blur_planes(src, taps.detach().numpy().astype(src.dtype)))
 
 
 class _GaussianBlur(torch.autograd.Function):

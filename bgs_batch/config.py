@@ -55,6 +55,10 @@ class TrackingConfig:
     coarse_fraction: float = 0.0  # share of the iterations spent on the coarse levels
     early_stop_rel: float = 0.0  # stop when the best loss improved by less than this ...
     early_stop_patience: int = 0  # ... over this many iterations (0 disables early stopping)
+    # Adam's first steps are about lr in size whatever the gradient (1 cm, 0.11°), more than
+    # what a finer level has left to correct: each finer level's rates are this many times
+    # the coarser one's (1 = the same rates everywhere)
+    level_lr_factor: float = 1.0
 
 
 @dataclass

@@ -14,8 +14,9 @@ from dataclasses import dataclass
 
 import torch
 
-from bgs_batch.blur import gaussian_blur, gaussian_window
+from bgs_batch.blur import gaussian_window
 from bgs_batch.config import TrackingConfig, UncertaintyConfig
+from bgs_batch.loss_kernels import fused_ssim, l1_nll_terms, weighted_normalised_l1
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -39,26 +40,10 @@ def predictive_variance(
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of two [H,W,C] images in [0,1] (11×11 Gaussian window, σ 1.5, zero padding)."""
-    channels = a.shape[-1]
-    a, b = a.permute(2, 0, 1), b.permute(2, 0, 1)
+    """Mean SSIM of two [H,W,C] images in [0,1] (11×11 Gaussian window, σ 1.5, zero padding);
+    differentiable with respect to `a` (the render)."""
     window = gaussian_window(SSIM_WINDOW, SSIM_SIGMA, a.dtype)
-    blurred = gaussian_blur(torch.cat([a, b, a * a, b * b, a * b]), window)
-    mu_a, mu_b, mean_aa, mean_bb, mean_ab = blurred.split(channels)
-    var_a = mean_aa - mu_a**2
-    var_b = mean_bb - mu_b**2
-    cov = mean_ab - mu_a * mu_b
-    num = (2 * mu_a * mu_b + SSIM_C1) * (2 * cov + SSIM_C2)
-    den = (mu_a**2 + mu_b**2 + SSIM_C1) * (var_a + var_b + SSIM_C2)
-    return (num / den).mean()
-
-
-def gaussian_nll(residual: torch.Tensor, variance: torch.Tensor, mask: torch.Tensor
-                 ) -> torch.Tensor:  # fmt: skip
-    """Mean over masked elements of 0.5·r²/Σ + 0.5·log Σ (residual not detached)."""
-    mask = mask.expand_as(residual)
-    terms = HALF_LOG_WEIGHT * (residual**2 / variance + torch.log(variance))
-    return terms[mask].mean() if mask.any() else residual.new_zeros(())
+    return fused_ssim(a, b, window, SSIM_C1, SSIM_C2)
 
 
 def isotropy_loss(log_scales: torch.Tensor) -> torch.Tensor:
@@ -95,14 +80,11 @@ def mapping_loss(
     L_3DGS = (1−w)·mean|Ĉ−C| + w·(1−SSIM) + mean|D̂−D| + isotropy, with means over pixels with
     valid depth (LoopSplat); `var_*` are the total predictive variances Σ_C, Σ_D.
     """
-    mask = (target_depth > 0) & torch.isfinite(depth)
-    color_mask = mask.expand_as(color)
-    l1_color = (color - target_color).abs()[color_mask].mean()
+    l1_color, depth_term, nll_c, nll_d = l1_nll_terms(
+        color, depth, target_color, target_depth, var_color, var_depth
+    ).unbind()
     color_term = (1 - ssim_weight) * l1_color + ssim_weight * (1 - ssim(color, target_color))
-    depth_term = (depth - target_depth).abs()[mask].mean()
     iso = isotropy_loss(log_scales)
-    nll_c = gaussian_nll(color - target_color, var_color, mask)
-    nll_d = gaussian_nll(depth - target_depth, var_depth, mask)
     total = color_term + depth_term + iso + gamma * (nll_c + nll_d)
     return MappingTerms(total, color_term, depth_term, iso, nll_c, nll_d)
 
@@ -124,13 +106,14 @@ def tracking_loss(
     Per term the two differ by the constant factor λ^{3/2}/w; the optimum is the same when
     λ_c = λ_d and w = 0.5. Pass variances whose sensor part is detached (the network is frozen).
     """
-    weight = (target_depth > 0) * alpha**3  # LoopSplat soft mask (not detached)
-    err_c = ((color - target_color).abs() / var_color.sqrt() * weight).sum()
-    err_d = ((depth - target_depth).abs() / var_depth.sqrt() * weight).sum()
     if cfg.loss_form == "paper":
-        return cfg.lambda_color * err_c + cfg.lambda_depth * err_d
-    w = cfg.authors_color_weight
-    return w * err_c / cfg.lambda_color**0.5 + (1 - w) * err_d / cfg.lambda_depth**0.5
+        weights = (cfg.lambda_color, cfg.lambda_depth)
+    else:
+        w = cfg.authors_color_weight
+        weights = (w / cfg.lambda_color**0.5, (1 - w) / cfg.lambda_depth**0.5)
+    # α³: LoopSplat's soft mask (not detached)
+    return weighted_normalised_l1(color, depth, alpha, target_color, target_depth, var_color,
+                                  var_depth, weights)  # fmt: skip
 
 
 def surprise_scores(

@@ -83,10 +83,13 @@ class Tracker:
             p.requires_grad_(False)
         try:
             w2c, loss, iterations = w2c_init.to(torch.float64), float("inf"), 0
-            for (factor, level), budget in zip(self.pyramid(frame), self.iteration_budget(),
-                                               strict=True):  # fmt: skip
+            for depth, ((factor, level), budget) in enumerate(
+                zip(self.pyramid(frame), self.iteration_budget(), strict=True)
+            ):
                 variances = self._sensor_at(sensor_color, sensor_depth, factor)
-                w2c, loss, used = self._optimise(gaussians, level, variances, w2c, budget)
+                lr_scale = self.cfg.tracking.level_lr_factor**depth
+                w2c, loss, used = self._optimise(gaussians, level, variances, w2c, budget,
+                                                 lr_scale)  # fmt: skip
                 iterations += used
             with torch.no_grad():
                 out, var_c, var_d = self._render(gaussians, level, variances, w2c)
@@ -116,14 +119,17 @@ class Tracker:
         variances: Variances,
         w2c_start: torch.Tensor,
         budget: int,
+        lr_scale: float = 1.0,
     ) -> tuple[torch.Tensor, float, int]:
-        """Adam on ξ at one pyramid level; returns the lowest-loss pose, its loss, iterations."""
+        """Adam on ξ at one pyramid level (rates × `lr_scale`); returns the lowest-loss pose,
+        its loss and the iterations used."""
         t = self.cfg.tracking
         rho = torch.zeros(3, dtype=torch.float64, requires_grad=True)
         phi = torch.zeros(3, dtype=torch.float64, requires_grad=True)
         optimizer = torch.optim.Adam(
-            [{"params": [rho], "lr": t.trans_lr}, {"params": [phi], "lr": t.rot_lr}], amsgrad=True
-        )
+            [{"params": [rho], "lr": t.trans_lr * lr_scale},
+             {"params": [phi], "lr": t.rot_lr * lr_scale}], amsgrad=True
+        )  # fmt: skip
         best_w2c, best, stale, used = w2c_start, float("inf"), 0, 0
         for used in range(1, budget + 1):  # noqa: B007 - the count is returned
             w2c = se3_exp(torch.cat([rho, phi])) @ w2c_start

@@ -8,8 +8,8 @@ import torch
 
 from bgs_batch.config import KeyframeConfig, TrackingConfig, UncertaintyConfig
 from bgs_batch.keyframes import KeyframeSelector
+from bgs_batch.loss_kernels import l1_nll_terms
 from bgs_batch.losses import (
-    gaussian_nll,
     isotropy_loss,
     mapping_loss,
     predictive_variance,
@@ -59,11 +59,15 @@ def test_ssim_against_direct_oracle():
     assert float(ssim(torch.tensor(a), torch.tensor(a))) == pytest.approx(1.0, abs=1e-12)
 
 
-def test_gaussian_nll_closed_form_and_mask():
-    r = torch.tensor([[[1.0], [5.0]]])
-    var = torch.tensor([[[math.e], [1.0]]])
-    mask = torch.tensor([[[True], [False]]])
-    assert float(gaussian_nll(r, var, mask)) == pytest.approx(0.5 / math.e + 0.5)
+def test_nll_terms_closed_form_and_mask():
+    depth = torch.tensor([[[2.0], [7.0]]], dtype=torch.float64)
+    target_d = torch.tensor([[[1.0], [0.0]]], dtype=torch.float64)  # second pixel: invalid
+    var_d = torch.tensor([[[math.e], [1.0]]], dtype=torch.float64)
+    color = torch.zeros(1, 2, 3, dtype=torch.float64)
+    terms = l1_nll_terms(color, depth, color, target_d, torch.ones_like(color), var_d)
+    assert terms.tolist() == pytest.approx([0.0, 1.0, 0.0, 0.5 / math.e + 0.5])
+    none_valid = l1_nll_terms(color, depth, color, target_d * 0, torch.ones_like(color), var_d)
+    assert none_valid.tolist() == [0.0, 0.0, 0.0, 0.0]
 
 
 def test_isotropy_zero_for_spheres():
@@ -112,11 +116,11 @@ def test_mapping_loss_parts_and_gradients():
     target_c, target_d = color.detach() * 0.5, depth + 0.1
     var_c, var_d = torch.ones_like(color), torch.ones_like(depth)
     terms = mapping_loss(color, depth, target_c, target_d, var_c, var_d, log_scales, 1e-3, 0.2)
-    l1 = float((color - target_c).abs().mean())
-    expected_color = 0.8 * l1 + 0.2 * (1 - float(ssim(color, target_c)))
-    assert float(terms.color) == pytest.approx(expected_color)
-    assert float(terms.depth) == pytest.approx(0.1) and float(terms.isotropy) == 0
-    assert float(terms.nll_depth) == pytest.approx(0.5 * 0.01)
+    l1 = float((color.detach() - target_c).abs().mean())
+    expected_color = 0.8 * l1 + 0.2 * (1 - float(ssim(color.detach(), target_c)))
+    assert float(terms.color.detach()) == pytest.approx(expected_color)
+    assert float(terms.depth.detach()) == pytest.approx(0.1) and float(terms.isotropy) == 0
+    assert float(terms.nll_depth.detach()) == pytest.approx(0.5 * 0.01)
     assert float(terms.total.detach()) == pytest.approx(
         float(terms.color + terms.depth + 1e-3 * (terms.nll_color + terms.nll_depth)))
     terms.total.backward()
