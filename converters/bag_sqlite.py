@@ -164,8 +164,8 @@ class Ros2Sqlite:
     def _open_database(self, file: Path, by_key: dict[tuple[str, str], Ros2Connection]) -> None:
         """Open one database file read-only and learn its topics and message definitions."""
         uri = f"{file.resolve().as_uri()}?mode=ro&immutable=1"
-        try:
-            db = sqlite3.connect(uri, uri=True)
+        try:  # any thread may run a pass, one at a time: a plan made here can be used elsewhere
+            db = sqlite3.connect(uri, uri=True, check_same_thread=False)
         except sqlite3.Error as err:
             raise BagReadError(f"{file} cannot be opened ({err})") from err
         try:

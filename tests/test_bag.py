@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import shutil
 import sqlite3
+import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -321,6 +322,28 @@ def test_sqlite_reader_matches_rosbags(tmp_path, compression):
     with FrameStore(out) as store:
         assert len(store) == 3 and store.provenance["storage"] == "ROS2 sqlite3"
         assert store.read_depth_raw(2)[0, 0] == 1000
+
+
+def test_db3_plan_opens_the_bag_once(tmp_path, monkeypatch):
+    """A file-compressed bag is decompressed once for both passes, which may run in another
+    thread; the copy goes when the second pass ends, or when a plan is dropped unused."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from converters.bag import BagOptions, plan_bag
+
+    folder = _tiny_bag(tmp_path / "rec", "sqlite3", compression="zstd", ros2_mode="file")
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    plan = plan_bag(folder, BagOptions())
+    assert [p.name for p in scratch.glob("*/*")] == ["rec.db3"]
+    with ThreadPoolExecutor(1) as pool:
+        assert pool.submit(lambda: len([f.load() for f in plan.frames])).result() == 3
+    assert not any(scratch.iterdir())
+    unused = plan_bag(folder, BagOptions())
+    assert [p.name for p in scratch.glob("*/*")] == ["rec.db3"]
+    del unused
+    assert not any(scratch.iterdir())
 
 
 def test_bare_db3_without_metadata(tmp_path):
