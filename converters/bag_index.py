@@ -110,9 +110,9 @@ def open_reader(path: Path) -> BagReader:
     try:
         if path.suffix == ROS1_SUFFIX:
             return Ros1Bag(path)
-        if path.suffix == DB3_SUFFIX:
+        if path.suffix == DB3_SUFFIX and path.is_file():
             return Ros2Sqlite(path)
-        if path.is_dir():
+        if path.is_dir() and not any(path.glob(f"*{MCAP_SUFFIX}*")):  # MCAP: AnyReader parses it
             metadata = read_metadata(path)
             if metadata.get("storage_identifier") == SQLITE_STORAGE:
                 return Ros2Sqlite(path, metadata)
