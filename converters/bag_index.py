@@ -30,7 +30,6 @@ from converters.bag_readers import (
     Ros1Bag,
     Ros2Bag,
 )
-from converters.bag_sqlite import SQLITE_STORAGE, Ros2Sqlite, read_metadata
 from converters.ros_images import (
     DEPTH,
     IMAGE,
@@ -110,15 +109,25 @@ def open_reader(path: Path) -> BagReader:
     try:
         if path.suffix == ROS1_SUFFIX:
             return Ros1Bag(path)
-        if path.suffix == DB3_SUFFIX and path.is_file():
-            return Ros2Sqlite(path)
-        if path.is_dir() and not any(path.glob(f"*{MCAP_SUFFIX}*")):  # MCAP: AnyReader parses it
-            metadata = read_metadata(path)
-            if metadata.get("storage_identifier") == SQLITE_STORAGE:
-                return Ros2Sqlite(path, metadata)
-        return Ros2Bag(path)
+        reader = _sqlite_bag(path)
+        return Ros2Bag(path) if reader is None else reader
     except BAG_ERRORS as err:
         return _salvage(path, err)
+
+
+def _sqlite_bag(path: Path) -> BagReader | None:
+    """A reader of a bare ``.db3`` or of a sqlite3 bag folder; None for other ROS2 bags."""
+    bare = path.suffix == DB3_SUFFIX and path.is_file()
+    if not bare and (not path.is_dir() or any(path.glob(f"*{MCAP_SUFFIX}*"))):
+        return None  # MCAP: AnyReader reads its metadata.yaml itself
+    from converters.bag_sqlite import SQLITE_STORAGE, Ros2Sqlite, read_metadata  # as Ros2Bag
+
+    if bare:
+        return Ros2Sqlite(path)
+    metadata = read_metadata(path)
+    if metadata.get("storage_identifier") != SQLITE_STORAGE:
+        return None
+    return Ros2Sqlite(path, metadata)
 
 
 def _salvage(path: Path, err: Exception) -> BagReader:

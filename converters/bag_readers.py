@@ -1,7 +1,8 @@
 """Message readers of ROS1 and ROS2 bags, one interface (`BagReader`) for both and for the
 salvaged part of a truncated MCAP (`converters.mcap_salvage`).
 
-A ROS1 ``.bag`` is read with rosbags' ROS1 reader alone: its index tells where every message
+A ROS1 ``.bag`` is read with rosbags' ROS1 reader alone (imported, like every storage reader,
+only for its own kind of bag): its index tells where every message
 sits, a chunk is read and decompressed when the time-ordered index reaches it, and messages come
 out as views into the decompressed chunk, so nothing is copied until the caller keeps one.
 Message types are registered from the bag's own definitions only when a message is first
@@ -22,8 +23,6 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from rosbags.interfaces import Connection
-from rosbags.rosbag1 import Reader as Ros1Reader
-from rosbags.rosbag1 import ReaderError as Ros1ReaderError
 from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
@@ -77,10 +76,12 @@ class Ros1Bag:
     storage = "ROS1 bag"
 
     def __init__(self, path: Path) -> None:
-        self._reader = Ros1Reader(path)
+        from rosbags.rosbag1 import Reader, ReaderError  # here: see the module doc
+
+        self._reader = Reader(path)
         try:
             self._reader.open()
-        except Ros1ReaderError as err:
+        except ReaderError as err:
             raise BagReadError(*err.args) from err
         self.connections: list[Connection] = list(self._reader.connections)  # close clears it
 

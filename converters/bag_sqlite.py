@@ -20,9 +20,8 @@ import threading
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path, PurePath
-from tempfile import TemporaryDirectory
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rosbags.typesys import (
     Stores,
@@ -33,6 +32,9 @@ from rosbags.typesys import (
 )
 
 from converters.bag_readers import HEADER_STAMP_END, ROS2_METADATA, BagReadError
+
+if TYPE_CHECKING:
+    from tempfile import TemporaryDirectory
 
 SQLITE_STORAGE = "sqlite3"
 CDR = "cdr"
@@ -149,6 +151,8 @@ class Ros2Sqlite:
 
     def _decompressed(self, file: Path) -> Path:
         """A zstd-compressed database file, decompressed into the bag's temporary folder."""
+        from tempfile import TemporaryDirectory  # file-compressed bags only
+
         zstd = _zstd()
         if self._temp is None:
             self._temp = TemporaryDirectory(prefix="bgs-db3-")
