@@ -29,7 +29,7 @@ from converters.bag_readers import (
     Ros1Bag,
     _message_data,
 )
-from converters.bag_sqlite import Ros2Sqlite
+from converters.bag_sqlite import IDL_SEPARATOR, Ros2Sqlite, _Definition, _parse
 from converters.bag_writer import (
     QUANT_A,
     RosMessages,
@@ -344,6 +344,22 @@ def test_db3_plan_opens_the_bag_once(tmp_path, monkeypatch):
     assert [p.name for p in scratch.glob("*/*")] == ["rec.db3"]
     del unused
     assert not any(scratch.iterdir())
+
+
+def test_db3_idl_definitions():
+    """rosbag2 records a type's IDL alone or, with the IDLs it uses, each after a header."""
+    a = "module pkg { module msg { struct A { int32 value; }; }; };"
+    b = "module pkg { module msg { struct B { pkg::msg::A a; double x; }; }; };"
+    assert list(_parse("pkg/msg/A", _Definition("ros2idl", a, ""))) == ["pkg/msg/A"]
+    several = "".join(
+        f"{IDL_SEPARATOR}IDL: pkg/msg/{n}\n{idl}\n" for n, idl in (("B", b), ("A", a))
+    )
+    assert sorted(_parse("pkg/msg/B", _Definition("ros2idl", several, ""))) == [
+        "pkg/msg/A",
+        "pkg/msg/B",
+    ]
+    with pytest.raises(BagReadError, match="unknown encoding 'unknown'"):
+        _parse("pkg/msg/A", _Definition("unknown", a, ""))
 
 
 def test_bare_db3_without_metadata(tmp_path):
