@@ -117,8 +117,8 @@ class Ros2Sqlite:
         if self.connections and not self._definitions:
             self.close()
             raise BagReadError(
-                f"{path} holds no message definitions (rosbag2 wrote them from sqlite schema "
-                "4 on); re-record it or convert it with a newer rosbag2"
+                f"{path} holds no message definitions (rosbag2 stores them from sqlite "
+                "schema 4 on), so its messages cannot be decoded"
             )
 
     def _storage_files(self, folder: Path, metadata: dict[str, Any]) -> list[Path]:
@@ -129,7 +129,7 @@ class Ros2Sqlite:
             storage = metadata["storage_identifier"]
             names = [PurePath(name).name for name in metadata["relative_file_paths"]]
         except (KeyError, TypeError, ValueError) as err:
-            raise BagReadError(f"{yaml} lacks a valid {err} entry") from err
+            raise BagReadError(f"{yaml}: an entry is missing or invalid ({err})") from err
         if version > NEWEST_BAG_VERSION:
             raise BagReadError(f"{yaml}: rosbag2 bag version {version} is not supported")
         if storage != SQLITE_STORAGE:

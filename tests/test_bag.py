@@ -392,6 +392,11 @@ def _db3(tmp_path: Path, sql: str = "", compression: str | None = None) -> Path:
         ("missing file", ["database files that are missing", "bad.db3"]),
         ("lz4", ["compression format 'lz4' is not supported"]),
         ("corrupt zstd", ["cannot be decompressed"]),
+        ("yaml: [", ["cannot read", "metadata.yaml"]),
+        (
+            "rosbag2_bagfile_information: {version: 9, storage_identifier: sqlite3}",
+            ["missing or invalid", "relative_file_paths"],
+        ),
     ],
 )
 def test_bad_db3_is_reported(tmp_path, damage, needles):
@@ -408,6 +413,8 @@ def test_bad_db3_is_reported(tmp_path, damage, needles):
         yaml.write_text(
             yaml.read_text().replace("compression_format: zstd", "compression_format: lz4")
         )
+    elif damage.startswith(("yaml", "rosbag2")):
+        yaml.write_text(damage)
     elif damage == "corrupt zstd":
         yaml.write_text(
             yaml.read_text()
