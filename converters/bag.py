@@ -4,12 +4,15 @@ Two passes over the bag keep memory bounded for any size: the first (`bag_index`
 stamps, camera infos and transforms; then topics are chosen, RGB and depth associated by header
 stamp (greedy one-to-one, TUM ``associate.py`` semantics) and depth registration planned; the
 second pass streams the chosen messages, holding only pairs still waiting for their partner, and
-hands raw bytes to the pipeline's workers, which deserialise, decode and register them.
+hands raw bytes to the pipeline's workers, which deserialise, decode and register them. The bag
+is opened once for both passes (opening a file-compressed ``.db3`` decompresses it).
 """
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Callable, Iterable, Iterator
+from contextlib import closing
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -29,8 +32,9 @@ from converters.bag_index import (
     ImageTopic,
     bag_error,
     index_bag,
-    open_bag,
+    open_reader,
 )
+from converters.bag_readers import BagReader
 from converters.pipeline import SourceFrame
 from converters.registration import DepthRegistration
 from converters.ros_images import (
@@ -75,13 +79,24 @@ class BagPlan:
 
 
 def plan_bag(path: Path, options: BagOptions) -> BagPlan:
-    """Index the bag, choose topics, associate, plan registration and GT; decode nothing yet."""
+    """Index the bag, choose topics, associate, plan registration and GT; decode nothing yet.
+
+    The bag stays open for the second pass, which closes it when it ends (or, if it never runs,
+    when the plan is dropped).
+    """
     path = Path(path)
     if options.stride < 1 or (options.max_frames is not None and options.max_frames < 1):
         raise InputError("--stride and --max-frames must be at least 1")
-    with open_bag(path) as reader:
-        index = index_bag(reader, path, options.pose_topic, options.pose_frame)
-        deserialize = reader.deserialize  # types registered once, reused by the second pass
+    reader = open_reader(path)
+    try:
+        return _plan(path, options, reader)
+    except BaseException:
+        reader.close()
+        raise
+
+
+def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
+    index = index_bag(reader, path, options.pose_topic, options.pose_frame)
     rgb = choose_image_topic(index, COLOR, options.rgb_topic)
     depth = choose_image_topic(index, DEPTH, options.depth_topic)
     rgb_info = choose_camera_info(index, rgb.topic, depth.topic, options.info_topic, "--info-topic")
@@ -132,8 +147,10 @@ def plan_bag(path: Path, options: BagOptions) -> BagPlan:
         has_gt=poses is not None,
         provenance=provenance,
     )
-    decoder = PairDecoder(path, rgb, depth, registration, deserialize)
-    frames = _stream_frames(path, rgb, depth, pairs, stamps, poses, decoder)
+    # the reader's deserialiser keeps its registered types after the reader is closed
+    decoder = PairDecoder(path, rgb, depth, registration, reader.deserialize)
+    frames = _stream_frames(reader, path, rgb, depth, pairs, stamps, poses, decoder)
+    weakref.finalize(frames, reader.close)  # a second pass that never starts
     return BagPlan(frames, len(pairs), meta)
 
 
@@ -384,6 +401,7 @@ class PairDecoder:
 
 
 def _stream_frames(
+    reader: BagReader,
     path: Path,
     rgb: ImageTopic,
     depth: ImageTopic,
@@ -392,7 +410,8 @@ def _stream_frames(
     poses: np.ndarray | None,
     decoder: PairDecoder,
 ) -> Iterator[SourceFrame]:
-    """Second pass: yield the associated pairs in order, as soon as both halves were read."""
+    """Second pass: yield the associated pairs in order, as soon as both halves were read;
+    closes the reader."""
     rgb_wanted = {int(i): k for k, i in enumerate(pairs[:, 0])}
     depth_wanted = {int(j): k for k, j in enumerate(pairs[:, 1])}
 
@@ -405,7 +424,7 @@ def _stream_frames(
         pose = None if poses is None or not np.all(np.isfinite(poses[k])) else poses[k]
         return SourceFrame(name, float(stamps[k]), pose, partial(decoder, rgb_raw, depth_raw, name))
 
-    with open_bag(path) as reader:
+    with closing(reader):
         connections = [c for c in reader.connections if c.topic in (rgb.topic, depth.topic)]
         seen = {rgb.topic: 0, depth.topic: 0}
         halves: dict[int, dict[str, bytes]] = {}

@@ -4,7 +4,7 @@ The index holds what the converter must decide before streaming frames: each ima
 encoding and header stamps, the cameras' ``CameraInfo``, the static transforms (``/tf_static``,
 ``/tf`` and the RealSense SDK's per-stream ``…/tf/0``) and, when asked for, a pose topic.
 Image stamps are read straight from the serialised header, so indexing costs one read of the
-bag and no image deserialisation.
+bag and no image deserialisation (and, for sqlite3 bags, no read of the pixels at all).
 """
 
 from __future__ import annotations
@@ -21,7 +21,15 @@ import numpy as np
 from rosbags.serde import SerdeError
 
 from bgs_batch.errors import InputError
-from converters.bag_readers import MCAP_SUFFIX, BagReader, BagReadError, Ros1Bag, Ros2Bag
+from converters.bag_readers import (
+    MCAP_SUFFIX,
+    ROS2_METADATA,
+    STAMP_OFFSET,
+    BagReader,
+    BagReadError,
+    Ros1Bag,
+    Ros2Bag,
+)
 from converters.ros_images import (
     DEPTH,
     IMAGE,
@@ -35,8 +43,8 @@ from converters.ros_tf import TransformTree, frame_name, quaternion, transform_m
 log = logging.getLogger(__name__)
 
 ROS1_SUFFIX = ".bag"
-ROS2_SUFFIXES = (".db3", MCAP_SUFFIX)
-ROS2_METADATA = "metadata.yaml"
+DB3_SUFFIX = ".db3"
+ROS2_SUFFIXES = (DB3_SUFFIX, MCAP_SUFFIX)
 # what reading a damaged bag raises: storage, deserialisation, header stamps
 BAG_ERRORS = (BagReadError, SerdeError, struct.error)
 
@@ -48,10 +56,7 @@ REALSENSE_TF_SUFFIX = "/tf/0"  # RealSense SDK recordings: a stream's extrinsic
 REALSENSE_IMAGE_SUFFIX = "/image/data"
 REALSENSE_DEPTH_UNITS = "/option/Depth Units/value"  # std_msgs/Float32, metres per unit
 
-# Every stamped message starts with std_msgs/Header: ROS1 ``uint32 seq`` then the stamp; CDR a
-# 4-byte encapsulation header (byte 1: 1 = little-endian) then the stamp. Both at offset 4.
-STAMP_OFFSET = 4
-CDR_LITTLE_ENDIAN = 1
+CDR_LITTLE_ENDIAN = 1  # byte 1 of the CDR encapsulation header (see bag_readers.STAMP_OFFSET)
 NS_PER_S = 1_000_000_000
 
 # (position, orientation) of every supported pose message type
@@ -77,10 +82,19 @@ def bag_error(path: Path, err: Exception) -> InputError:
 
 @contextmanager
 def open_bag(path: Path) -> Iterator[BagReader]:
+    """`open_reader` as a context manager: the reader is closed on leaving."""
+    reader = open_reader(path)
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def open_reader(path: Path) -> BagReader:
     """An open reader of a ROS1 ``.bag``, a ROS2 ``.db3``/``.mcap`` or a ROS2 bag folder.
 
     A bare ROS2 file next to its ``metadata.yaml`` is opened through its folder, which is the
-    only way rosbags can read message-compressed bags. A truncated MCAP is salvaged instead.
+    only way to read message-compressed bags. A truncated MCAP is salvaged instead.
     """
     path = Path(path)
     if not path.exists():
@@ -93,13 +107,27 @@ def open_bag(path: Path) -> Iterator[BagReader]:
             f"file, or a ROS2 bag folder holding {ROS2_METADATA}"
         )
     try:
-        reader = Ros1Bag(path) if path.suffix == ROS1_SUFFIX else Ros2Bag(path)
+        if path.suffix == ROS1_SUFFIX:
+            return Ros1Bag(path)
+        reader = _sqlite_bag(path)
+        return Ros2Bag(path) if reader is None else reader
     except BAG_ERRORS as err:
-        reader = _salvage(path, err)
-    try:
-        yield reader
-    finally:
-        reader.close()
+        return _salvage(path, err)
+
+
+def _sqlite_bag(path: Path) -> BagReader | None:
+    """A reader of a bare ``.db3`` or of a sqlite3 bag folder; None for other ROS2 bags."""
+    bare = path.suffix == DB3_SUFFIX and path.is_file()
+    if not bare and (not path.is_dir() or any(path.glob(f"*{MCAP_SUFFIX}*"))):
+        return None  # MCAP: AnyReader reads its metadata.yaml itself
+    from converters.bag_sqlite import SQLITE_STORAGE, Ros2Sqlite, read_metadata  # as Ros2Bag
+
+    if bare:
+        return Ros2Sqlite(path)
+    metadata = read_metadata(path)
+    if metadata.get("storage_identifier") != SQLITE_STORAGE:
+        return None
+    return Ros2Sqlite(path, metadata)
 
 
 def _salvage(path: Path, err: Exception) -> BagReader:
@@ -197,8 +225,9 @@ def index_bag(
     """Read the bag once: image stamps, camera infos, transforms and the optional pose topic."""
     index = BagIndex(path, reader.storage, {c.topic: c.msgtype for c in reader.connections})
     wanted = [c for c in reader.connections if _is_indexed(c, pose_topic)]
+    images = [c for c in wanted if c.msgtype in IMAGE_TYPES and c.topic != pose_topic]
     try:
-        for conn, _, raw in reader.messages(connections=wanted):
+        for conn, _, raw in reader.messages(connections=wanted, header_only=images):
             _index_message(index, reader, conn, raw, pose_topic, pose_frame)
     except BAG_ERRORS as err:
         raise bag_error(path, err) from err

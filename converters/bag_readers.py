@@ -1,14 +1,16 @@
 """Message readers of ROS1 and ROS2 bags, one interface (`BagReader`) for both and for the
 salvaged part of a truncated MCAP (`converters.mcap_salvage`).
 
-A ROS1 ``.bag`` is read with rosbags' ROS1 reader alone: its index tells where every message
+A ROS1 ``.bag`` is read with rosbags' ROS1 reader alone (imported, like every storage reader,
+only for its own kind of bag): its index tells where every message
 sits, a chunk is read and decompressed when the time-ordered index reaches it, and messages come
 out as views into the decompressed chunk, so nothing is copied until the caller keeps one.
 Message types are registered from the bag's own definitions only when a message is first
 deserialised: the converter's second pass reuses the first pass's deserialiser and never needs
-them. ROS2 bags go through rosbags' ``AnyReader``, imported only for them, since its storage
-plugins (sqlite3, MCAP, zstd, YAML) take a noticeable part of a short conversion to import.
-Storage errors of either come out as `BagReadError`.
+them. ROS2 sqlite3 bags are read with the standard library (`converters.bag_sqlite`); ROS2
+MCAP bags go through rosbags' ``AnyReader``, imported only for them, since its storage plugins
+(sqlite3, MCAP, zstd, YAML) take a noticeable part of a short conversion to import. Storage
+errors of all of them come out as `BagReadError`.
 """
 
 from __future__ import annotations
@@ -21,8 +23,6 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from rosbags.interfaces import Connection
-from rosbags.rosbag1 import Reader as Ros1Reader
-from rosbags.rosbag1 import ReaderError as Ros1ReaderError
 from rosbags.typesys import Stores, TypesysError, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
@@ -34,6 +34,11 @@ OP_MSG_DATA = 0x02
 OP_CONNECTION = 0x07  # chunks repeat a connection record before its first message
 PAST_END = "a record runs past the end of its chunk"
 MCAP_SUFFIX = ".mcap"
+ROS2_METADATA = "metadata.yaml"  # beside the storage files of a ROS2 bag folder
+# Every stamped message starts with std_msgs/Header: ROS1 ``uint32 seq`` then the stamp; CDR a
+# 4-byte encapsulation header (byte 1: 1 = little-endian) then the stamp. Both at offset 4.
+STAMP_OFFSET = 4
+HEADER_STAMP_END = STAMP_OFFSET + 8  # int32 sec, uint32 nanosec
 
 
 class BagReadError(Exception):
@@ -49,9 +54,13 @@ class BagReader(Protocol):
     connections: list[Any]  # each with .id, .topic and .msgtype (``pkg/msg/Name``)
 
     def messages(
-        self, connections: Collection[Any] = ()
+        self, connections: Collection[Any] = (), *, header_only: Collection[Any] = ()
     ) -> Iterator[tuple[Any, int, bytes | memoryview]]:
-        """(connection, time ns, serialised message) of the given connections (all if none)."""
+        """(connection, time ns, serialised message) of the given connections (all if none).
+
+        Messages of the `header_only` connections, except the first of each, may come cut short
+        after `HEADER_STAMP_END` bytes: readers that can read part of a message do so.
+        """
         ...
 
     def deserialize(self, raw: bytes | memoryview, msgtype: str) -> Any: ...
@@ -67,10 +76,12 @@ class Ros1Bag:
     storage = "ROS1 bag"
 
     def __init__(self, path: Path) -> None:
-        self._reader = Ros1Reader(path)
+        from rosbags.rosbag1 import Reader, ReaderError  # here: see the module doc
+
+        self._reader = Reader(path)
         try:
             self._reader.open()
-        except Ros1ReaderError as err:
+        except ReaderError as err:
             raise BagReadError(*err.args) from err
         self.connections: list[Connection] = list(self._reader.connections)  # close clears it
 
@@ -97,9 +108,10 @@ class Ros1Bag:
         return typestore
 
     def messages(
-        self, connections: Collection[Connection] = ()
+        self, connections: Collection[Connection] = (), *, header_only: Collection[Any] = ()
     ) -> Iterator[tuple[Connection, int, memoryview]]:
-        """(connection, receive time ns, serialised message) of the wanted connections."""
+        """(connection, receive time ns, serialised message) of the wanted connections, all
+        whole (`header_only` is ignored: views into the chunk cost nothing)."""
         indexes = self._reader.indexes
         # stable sort by time: ties keep connection order, as rosbags' merge of the indexes
         entries = [
@@ -132,7 +144,9 @@ class Ros1Bag:
         return self.typestore.deserialize_ros1(raw, msgtype)
 
     def close(self) -> None:
-        self._reader.close()
+        """Idempotent: the converter's second pass and its safety net may both close."""
+        if self._reader.bio is not None:
+            self._reader.close()
 
 
 def _message_data(chunk: memoryview, offset: int) -> memoryview:
@@ -169,7 +183,7 @@ def _record_op(chunk: memoryview, start: int, size: int) -> int | None:
 
 
 class Ros2Bag:
-    """An open ROS2 bag (folder, ``.db3`` or ``.mcap``) read with rosbags' ``AnyReader``, whose
+    """An open ROS2 MCAP bag (folder or ``.mcap``) read with rosbags' ``AnyReader``, whose
     errors come out as `BagReadError`."""
 
     is2 = True
@@ -184,16 +198,17 @@ class Ros2Bag:
             self._reader.open()
         except self._errors as err:
             raise BagReadError(*err.args) from err
-        is_mcap = path.suffix == MCAP_SUFFIX or any(path.glob(f"*{MCAP_SUFFIX}"))
-        self.storage = "ROS2 mcap" if is_mcap else "ROS2 sqlite3"
+        self.storage = "ROS2 mcap"
         # AnyReader clears its connections and drops its typestore on close
         self.connections: list[Connection] = list(self._reader.connections)
         self._typestore: Typestore = self._reader.typestore
+        self._open = True
 
     def messages(
-        self, connections: Collection[Connection] = ()
+        self, connections: Collection[Connection] = (), *, header_only: Collection[Any] = ()
     ) -> Iterator[tuple[Connection, int, bytes]]:
-        """(connection, log time ns, CDR bytes) of the wanted connections, in time order."""
+        """(connection, log time ns, CDR bytes) of the wanted connections, in time order, all
+        whole (``AnyReader`` cannot read part of a message)."""
         try:
             yield from self._reader.messages(connections=connections)
         except self._errors as err:
@@ -203,4 +218,7 @@ class Ros2Bag:
         return self._typestore.deserialize_cdr(raw, msgtype)
 
     def close(self) -> None:
-        self._reader.close()
+        """Idempotent, as `Ros1Bag.close`."""
+        if self._open:
+            self._open = False
+            self._reader.close()

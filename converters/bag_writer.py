@@ -140,10 +140,13 @@ class RosMessages:
 
 
 @contextmanager
-def bag_writer(path: Path, storage: str, compression: str | None = None) -> Iterator[RosMessages]:
+def bag_writer(
+    path: Path, storage: str, compression: str | None = None, ros2_mode: str = "message"
+) -> Iterator[RosMessages]:
     """Yield `RosMessages` writing a ROS1 .bag ('ros1') or ROS2 bag folder ('sqlite3', 'mcap').
 
-    `compression`: 'lz4' or 'bz2' chunks for ROS1, 'zstd'-compressed messages for ROS2.
+    `compression`: 'lz4' or 'bz2' chunks for ROS1, 'zstd' for ROS2, which compresses each
+    message or, with `ros2_mode` 'file', each storage file.
     """
     ros1 = storage == "ros1"
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
@@ -157,7 +160,7 @@ def bag_writer(path: Path, storage: str, compression: str | None = None) -> Iter
         writer = rosbag2.Writer(path, version=ROS2_BAG_VERSION, storage_plugin=plugin[storage])
         if compression:
             fmt = rosbag2.CompressionFormat[compression.upper()]
-            writer.set_compression(rosbag2.CompressionMode.MESSAGE, fmt)
+            writer.set_compression(rosbag2.CompressionMode[ros2_mode.upper()], fmt)
     connections: dict[str, Any] = {}
 
     def write(topic: str, msgtype: str, msg: Any, stamp_ns: int) -> None:

@@ -75,9 +75,10 @@ class SalvagedMcap:
                 return
 
     def messages(
-        self, connections: Collection[SalvagedConnection] = ()
+        self, connections: Collection[SalvagedConnection] = (), *, header_only: Collection[Any] = ()
     ) -> Iterator[tuple[SalvagedConnection, int, bytes]]:
-        """(connection, log time ns, CDR bytes) of the wanted channels' surviving messages."""
+        """(connection, log time ns, CDR bytes) of the wanted channels' surviving messages, all
+        whole (`header_only` is ignored)."""
         wanted = {c.id for c in connections} or set(self._by_id)
         for record in self._records():
             if isinstance(record, Message) and record.channel_id in wanted:

@@ -3,6 +3,9 @@ image encoding, the decoders on their own, registration, and every bad input of 
 
 from __future__ import annotations
 
+import shutil
+import sqlite3
+import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -17,13 +20,16 @@ from rosbags.typesys import Stores, get_typestore
 
 from bgs_batch.cli import main
 from bgs_batch.store import FrameStore
+from converters.bag_index import open_bag
 from converters.bag_readers import (
+    HEADER_STAMP_END,
     OP_CONNECTION,
     OP_MSG_DATA,
     BagReadError,
     Ros1Bag,
     _message_data,
 )
+from converters.bag_sqlite import IDL_SEPARATOR, Ros2Sqlite, _Definition, _parse
 from converters.bag_writer import (
     QUANT_A,
     RosMessages,
@@ -279,6 +285,147 @@ def test_ros1_reader_matches_rosbags(tmp_path, compression):
     assert np.array_equal(fresh.deserialize(raw, IMAGE).data, ours_msg.data)
 
 
+# --- the ROS2 sqlite3 reader ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("compression", [None, "message", "file"])
+def test_sqlite_reader_matches_rosbags(tmp_path, compression):
+    """Same messages, bytes and order as rosbags' AnyReader for plain, message- and
+    file-compressed bags; header-only reads keep the first message of a topic whole."""
+    from rosbags.highlevel import AnyReader
+
+    folder = tmp_path / "rec"
+    _tiny_bag(folder, "sqlite3", compression=compression and "zstd", ros2_mode=compression)
+
+    def listing(messages) -> list[tuple[str, int, bytes]]:
+        return [(conn.topic, time, bytes(raw)) for conn, time, raw in messages]
+
+    with open_bag(folder) as ours, AnyReader([folder]) as ref:
+        assert isinstance(ours, Ros2Sqlite)
+        assert listing(ours.messages()) == listing(ref.messages())
+        images = [c for c in ours.connections if c.msgtype == IMAGE]
+        whole = listing(ours.messages(images))
+        heads = listing(ours.messages(images, header_only=images))
+        info = next(c for c in ours.connections if c.msgtype.endswith("CameraInfo"))
+        _, _, raw = next(ours.messages([info]))
+    assert [h[:2] for h in heads] == [w[:2] for w in whole]
+    for topic in {t for t, _, _ in whole}:
+        mine = [h[2] for h in heads if h[0] == topic]
+        full = [w[2] for w in whole if w[0] == topic]
+        assert mine[0] == full[0]  # the first one whole: the index reads its encoding and size
+        cut = len(full[1]) if compression == "message" else HEADER_STAMP_END
+        assert all(h == w[:cut] for h, w in zip(mine[1:], full[1:], strict=True))
+    assert ours.deserialize(raw, info.msgtype).width == 8  # works after close
+    out = tmp_path / "out.h5"
+    result = convert(folder, out)
+    assert result.exit_code == 0, result.output
+    with FrameStore(out) as store:
+        assert len(store) == 3 and store.provenance["storage"] == "ROS2 sqlite3"
+        assert store.read_depth_raw(2)[0, 0] == 1000
+
+
+def test_db3_plan_opens_the_bag_once(tmp_path, monkeypatch):
+    """A file-compressed bag is decompressed once for both passes, which may run in another
+    thread; the copy goes when the second pass ends, or when a plan is dropped unused."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from converters.bag import BagOptions, plan_bag
+
+    folder = _tiny_bag(tmp_path / "rec", "sqlite3", compression="zstd", ros2_mode="file")
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    plan = plan_bag(folder, BagOptions())
+    assert [p.name for p in scratch.glob("*/*")] == ["rec.db3"]
+    with ThreadPoolExecutor(1) as pool:
+        assert pool.submit(lambda: len([f.load() for f in plan.frames])).result() == 3
+    assert not any(scratch.iterdir())
+    unused = plan_bag(folder, BagOptions())
+    assert [p.name for p in scratch.glob("*/*")] == ["rec.db3"]
+    del unused
+    assert not any(scratch.iterdir())
+
+
+def test_db3_idl_definitions():
+    """rosbag2 records a type's IDL alone or, with the IDLs it uses, each after a header."""
+    a = "module pkg { module msg { struct A { int32 value; }; }; };"
+    b = "module pkg { module msg { struct B { pkg::msg::A a; double x; }; }; };"
+    assert list(_parse("pkg/msg/A", _Definition("ros2idl", a, ""))) == ["pkg/msg/A"]
+    several = "".join(
+        f"{IDL_SEPARATOR}IDL: pkg/msg/{n}\n{idl}\n" for n, idl in (("B", b), ("A", a))
+    )
+    assert sorted(_parse("pkg/msg/B", _Definition("ros2idl", several, ""))) == [
+        "pkg/msg/A",
+        "pkg/msg/B",
+    ]
+    with pytest.raises(BagReadError, match="unknown encoding 'unknown'"):
+        _parse("pkg/msg/A", _Definition("unknown", a, ""))
+
+
+def test_bare_db3_without_metadata(tmp_path):
+    folder = _tiny_bag(tmp_path / "rec", "sqlite3")
+    bare = shutil.copy(folder / "rec.db3", tmp_path / "moved.db3")
+    result = convert(bare, tmp_path / "out.h5")
+    assert result.exit_code == 0, result.output
+    assert len(FrameStore(tmp_path / "out.h5")) == 3
+
+
+def _db3(tmp_path: Path, sql: str = "", compression: str | None = None) -> Path:
+    """A small sqlite3 bag folder, its database changed by `sql`."""
+    folder = _tiny_bag(tmp_path / "bad", "sqlite3", compression=compression)
+    if sql:
+        with sqlite3.connect(folder / "bad.db3") as db:
+            db.executescript(sql)
+        db.close()
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("damage", "needles"),
+    [
+        ("garbage", ["cannot read the bag", "not a readable sqlite3 database"]),
+        ("truncated", ["cannot read the bag", "malformed"]),
+        ("DROP TABLE topics;", ["not a rosbag2 database"]),
+        ("DROP TABLE message_definitions;", ["holds no message definitions"]),
+        ("UPDATE message_definitions SET type_description_hash = 'RIHS01_0';", ["hash"]),
+        ("UPDATE topics SET serialization_format = 'json';", ["'json', not cdr"]),
+        ("missing file", ["database files that are missing", "bad.db3"]),
+        ("lz4", ["compression format 'lz4' is not supported"]),
+        ("corrupt zstd", ["cannot be decompressed"]),
+        ("yaml: [", ["cannot read", "metadata.yaml"]),
+        (
+            "rosbag2_bagfile_information: {version: 9, storage_identifier: sqlite3}",
+            ["missing or invalid", "relative_file_paths"],
+        ),
+    ],
+)
+def test_bad_db3_is_reported(tmp_path, damage, needles):
+    sql = damage if damage.endswith(";") else ""
+    folder = _db3(tmp_path, sql, "zstd" if damage == "lz4" else None)
+    db3, yaml = folder / "bad.db3", folder / "metadata.yaml"
+    if damage == "garbage":
+        db3.write_bytes(b"not sqlite" * 1000)
+    elif damage == "truncated":
+        db3.write_bytes(db3.read_bytes()[: db3.stat().st_size // 2])
+    elif damage == "missing file":
+        db3.unlink()
+    elif damage == "lz4":
+        yaml.write_text(
+            yaml.read_text().replace("compression_format: zstd", "compression_format: lz4")
+        )
+    elif damage.startswith(("yaml", "rosbag2")):
+        yaml.write_text(damage)
+    elif damage == "corrupt zstd":
+        yaml.write_text(
+            yaml.read_text()
+            .replace("compression_format: ''", "compression_format: zstd")
+            .replace("compression_mode: ''", "compression_mode: message")
+        )
+    out = tmp_path / "out.h5"
+    assert_fails(convert(folder, out), str(folder), *needles)
+    _assert_no_output(out)
+
+
 def _record(op: int, data: bytes) -> bytes:
     """A ROS1 bag record: header of length-prefixed ``name=value`` fields, then the data."""
     fields = b"".join(
@@ -409,10 +556,11 @@ def _tiny_bag(
     depth_size=(8, 6),
     rgb_payload=None,
     compression: str | None = None,
+    ros2_mode: str | None = None,
 ) -> Path:
     """A small valid bag (3 frames of 8x6), or one broken in a single, named way."""
     rgb = np.full((6, 8, 3), 100, np.uint8)
-    with bag_writer(path, storage, compression) as bag:
+    with bag_writer(path, storage, compression, ros2_mode or "message") as bag:
         bag.camera_info("/cam/color/camera_info", 1, RGB_FRAME, np.eye(3) * [10, 10, 1], (8, 6))
         for i in range(3):
             stamp = 10**9 + i * 33_000_000
