@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from bgs_batch.adam import Adam
 from bgs_batch.config import MappingConfig
 from bgs_batch.render import Gaussians
 
@@ -79,7 +80,7 @@ class GaussianMap:
         }
         return n
 
-    def keep(self, mask: torch.Tensor, optimizer: torch.optim.Adam | None = None) -> int:
+    def keep(self, mask: torch.Tensor, optimizer: Adam | None = None) -> int:
         """Keep the Gaussians where `mask` holds (and their Adam moments); return how many went."""
         removed = int((~mask).sum())
         if removed == 0:
@@ -98,13 +99,13 @@ class GaussianMap:
                     }
         return removed
 
-    def optimizer(self, cfg: MappingConfig) -> torch.optim.Adam:
+    def optimizer(self, cfg: MappingConfig) -> Adam:
         """A fresh Adam with LoopSplat's per-parameter learning rates (one per mapping call)."""
         lrs = {"means": cfg.lr_means, "log_scales": cfg.lr_scales, "quats": cfg.lr_rotations,
                "opacity_logits": cfg.lr_opacity, "colors": cfg.lr_colors,
                "uncertainty_logits": cfg.lr_uncertainty}  # fmt: skip
         groups = [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in PARAMS]
-        return torch.optim.Adam(groups, eps=ADAM_EPS)
+        return Adam(groups, eps=ADAM_EPS)
 
     def opacities(self) -> torch.Tensor:
         return torch.sigmoid(self.params["opacity_logits"].detach())

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from bgs_batch.adam import Adam
 from bgs_batch.config import Config, SubmapConfig
 from bgs_batch.frames import Level, camera_for, crop_and_clip, downsample, to_level
 from bgs_batch.gaussian_map import GaussianMap
@@ -83,8 +84,7 @@ class Slam:
         self.rng = np.random.default_rng(self.cfg.seed)
         self.sensor = SensorNoiseNet(self.cfg.uncertainty.sensor_hidden,
                                      self.cfg.uncertainty.sensor_min)  # fmt: skip
-        self.sensor_opt = torch.optim.Adam(self.sensor.parameters(),
-                                           lr=self.cfg.uncertainty.sensor_lr)  # fmt: skip
+        self.sensor_opt = Adam(self.sensor.parameters(), lr=self.cfg.uncertainty.sensor_lr)
         self.tracker = Tracker(self.cfg)
         self.mapper = Mapper(self.cfg, self.sensor, self.sensor_opt)
         self.selector = KeyframeSelector(self.cfg.keyframes)
