@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from bgs_batch.adam import Adam
 from bgs_batch.config import MappingConfig
+from bgs_batch.geometry import kd_tree
 from bgs_batch.render import Gaussians
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "colors", "uncertainty_logits")
@@ -62,7 +62,7 @@ class GaussianMap:
         old = self.params["means"].detach().numpy()
         everything = np.concatenate([old, means]).astype(np.float64)
         k = min(SCALE_NEIGHBOURS + 1, len(everything))
-        dist, _ = cKDTree(everything).query(means, k=k)
+        dist, _ = kd_tree(everything).query(means, k=k)
         dist = np.atleast_2d(dist)[:, 1:] if k > 1 else np.full((len(means), 1), 0.01)
         scale = np.sqrt(np.maximum(np.mean(dist**2, axis=1), MIN_INITIAL_SCALE**2))
         n = len(means)
