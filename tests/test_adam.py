@@ -5,10 +5,13 @@ from __future__ import annotations
 import io
 from collections.abc import Callable
 
+import numpy as np
 import pytest
 import torch
 
 from bgs_batch.adam import Adam
+from bgs_batch.config import MappingConfig
+from bgs_batch.gaussian_map import ADAM_EPS, PARAMS, GaussianMap
 
 STEPS = 7
 SHAPES = ((5, 3), (4,), ())
@@ -35,14 +38,11 @@ def run(opt: object, params: list[torch.Tensor], steps: int, seed: int, first: i
         used = params if k % 3 else params[:-1]
         weights = [torch.randn(p.shape, generator=gen, dtype=p.dtype) * 10.0 ** (k % 4 - 2)
                    for p in used]  # fmt: skip
-        loss = sum((p * w).sum() + (p**2 * w.abs()).sum() for p, w in zip(used, weights,
-                                                                           strict=True))
+        loss = sum(
+            (p * w).sum() + (p**2 * w.abs()).sum() for p, w in zip(used, weights, strict=True)
+        )
         loss.backward()
         opt.step()
-
-
-def bits(params: list[torch.Tensor]) -> list[torch.Tensor]:
-    return [p.detach().clone() for p in params]
 
 
 def assert_bitwise(a: list[torch.Tensor], b: list[torch.Tensor]) -> None:
@@ -53,8 +53,11 @@ def assert_bitwise(a: list[torch.Tensor], b: list[torch.Tensor]) -> None:
 OPTIONS = [
     pytest.param(dtype, kwargs, id=f"{str(dtype)[6:]}-{'-'.join(map(str, kwargs.values()))}")
     for dtype in (torch.float32, torch.float64)
-    for kwargs in ({"amsgrad": False}, {"amsgrad": True},
-                   {"amsgrad": True, "eps": 1e-15, "betas": (0.8, 0.99)})  # fmt: skip
+    for kwargs in (
+        {"amsgrad": False},
+        {"amsgrad": True},
+        {"amsgrad": True, "eps": 1e-15, "betas": (0.8, 0.99)},
+    )
 ]
 
 
@@ -84,13 +87,14 @@ def roundtrip(state: dict) -> dict:
 
 @pytest.mark.parametrize("source", [Adam, torch.optim.Adam], ids=["ours", "torch"])
 @pytest.mark.parametrize("amsgrad", [False, True])
-def test_state_dict_resume_is_bitwise(source: Callable, amsgrad: bool) -> None:
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_state_dict_resume_is_bitwise(source: Callable, amsgrad: bool, dtype: torch.dtype) -> None:
     """Stop after some steps, reload the state (ours, or one torch.optim.Adam wrote) into a
     fresh optimiser, continue: equal to the uninterrupted run."""
-    straight = make_params(torch.float32)
+    straight = make_params(dtype)
     run(Adam(groups(straight), amsgrad=amsgrad), straight, 2 * STEPS, seed=3)
 
-    first = make_params(torch.float32)
+    first = make_params(dtype)
     opt = source(groups(first), amsgrad=amsgrad)
     run(opt, first, STEPS, seed=3)
     state = roundtrip(opt.state_dict())
@@ -139,3 +143,30 @@ def test_rejects_bad_settings_and_layouts() -> None:
         Adam([])
     with pytest.raises(ValueError):
         Adam(params[:1]).load_state_dict(Adam(params).state_dict())
+
+
+def test_pruning_edits_the_moments_as_with_torch() -> None:
+    """`GaussianMap.keep` drops pruned Gaussians' moments from the optimiser's state; steps
+    after it match torch.optim.Adam's."""
+    rng = np.random.default_rng(0)
+    means, colors = rng.normal(size=(9, 3)), rng.uniform(size=(9, 3))
+    weights = {n: torch.from_numpy(rng.normal(size=(9, *GaussianMap().params[n].shape[1:])))
+               for n in PARAMS}  # fmt: skip
+    mask = torch.from_numpy(rng.uniform(size=9) > 0.4)
+    results = []
+    for torch_adam in (False, True):
+        gmap = GaussianMap()
+        gmap.add(means, colors, 0.5, -7.0)
+        opt = gmap.optimizer(MappingConfig())
+        if torch_adam:
+            opt = torch.optim.Adam([{"params": g["params"], "lr": g["lr"], "name": g["name"]}
+                                    for g in opt.param_groups], eps=ADAM_EPS)  # fmt: skip
+        for k in range(4):
+            if k == 2:
+                gmap.keep(mask, opt)
+            opt.zero_grad(set_to_none=True)
+            live = mask if k >= 2 else torch.ones(9, dtype=torch.bool)
+            sum((p * weights[n][live].float()).sum() for n, p in gmap.params.items()).backward()
+            opt.step()
+        results.append([gmap.params[n].detach() for n in PARAMS])
+    assert_bitwise(*results)
