@@ -104,6 +104,7 @@ class Slam:
     def process(self, frame: Frame) -> dict[str, Any]:
         """Track, select and map one frame; return its log event."""
         cfg = self.cfg
+        totals_before = asdict(self.timings)
         full, level = self.prepare(frame)
         event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
 
@@ -155,8 +156,15 @@ class Slam:
             event.update(map_added=stats.added, map_pruned=stats.pruned, map_loss=stats.loss)
             self.timings.add("mapping", time.perf_counter() - start)
         event.update(submap=len(self.submaps), gaussians=len(self.gmap),
-                     pose=[float(x) for x in c2w[:3].ravel()])  # fmt: skip
+                     pose=[float(x) for x in c2w[:3].ravel()],
+                     stage_s=self._stages_since(totals_before))  # fmt: skip
         return event
+
+    def _stages_since(self, totals_before: dict[str, float]) -> dict[str, float]:
+        """Seconds per stage since the run's totals were `totals_before` (the stages that ran)."""
+        return {stage: total - totals_before[stage]
+                for stage, total in asdict(self.timings).items()
+                if total != totals_before[stage]}  # fmt: skip
 
     def _should_switch(self, index: int, c2w: np.ndarray) -> bool:
         s = self.cfg.submaps
