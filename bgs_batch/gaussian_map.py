@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
+from bgs_batch.adam import Adam
 from bgs_batch.config import MappingConfig
+from bgs_batch.geometry import kd_tree
 from bgs_batch.render import Gaussians
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "colors", "uncertainty_logits")
@@ -61,7 +62,7 @@ class GaussianMap:
         old = self.params["means"].detach().numpy()
         everything = np.concatenate([old, means]).astype(np.float64)
         k = min(SCALE_NEIGHBOURS + 1, len(everything))
-        dist, _ = cKDTree(everything).query(means, k=k)
+        dist, _ = kd_tree(everything).query(means, k=k)
         dist = np.atleast_2d(dist)[:, 1:] if k > 1 else np.full((len(means), 1), 0.01)
         scale = np.sqrt(np.maximum(np.mean(dist**2, axis=1), MIN_INITIAL_SCALE**2))
         n = len(means)
@@ -79,7 +80,7 @@ class GaussianMap:
         }
         return n
 
-    def keep(self, mask: torch.Tensor, optimizer: torch.optim.Adam | None = None) -> int:
+    def keep(self, mask: torch.Tensor, optimizer: Adam | None = None) -> int:
         """Keep the Gaussians where `mask` holds (and their Adam moments); return how many went."""
         removed = int((~mask).sum())
         if removed == 0:
@@ -98,13 +99,13 @@ class GaussianMap:
                     }
         return removed
 
-    def optimizer(self, cfg: MappingConfig) -> torch.optim.Adam:
+    def optimizer(self, cfg: MappingConfig) -> Adam:
         """A fresh Adam with LoopSplat's per-parameter learning rates (one per mapping call)."""
         lrs = {"means": cfg.lr_means, "log_scales": cfg.lr_scales, "quats": cfg.lr_rotations,
                "opacity_logits": cfg.lr_opacity, "colors": cfg.lr_colors,
                "uncertainty_logits": cfg.lr_uncertainty}  # fmt: skip
         groups = [{"params": [self.params[n]], "lr": lrs[n], "name": n} for n in PARAMS]
-        return torch.optim.Adam(groups, eps=ADAM_EPS)
+        return Adam(groups, eps=ADAM_EPS)
 
     def opacities(self) -> torch.Tensor:
         return torch.sigmoid(self.params["opacity_logits"].detach())

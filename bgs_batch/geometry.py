@@ -5,7 +5,20 @@ Vectorised over leading dimensions; float64 throughout.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
+
+
+def kd_tree(points: np.ndarray) -> cKDTree:
+    """scipy's KD-tree over `points` (n, d). scipy.spatial is imported here, on first use: it
+    takes ~0.3 s and tracking a frame never needs it, so a resumed job starts sooner (P4)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points)
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from bgs_batch.adam import Adam
 from bgs_batch.config import Config
 from bgs_batch.frames import Level
 from bgs_batch.gaussian_map import GaussianMap
@@ -58,7 +59,7 @@ def intrinsics_of(level: Level) -> np.ndarray:
 class Mapper:
     """Grows and optimises the active submap; owns the sensor network's training."""
 
-    def __init__(self, cfg: Config, sensor: SensorNoiseNet, sensor_opt: torch.optim.Adam) -> None:
+    def __init__(self, cfg: Config, sensor: SensorNoiseNet, sensor_opt: Adam) -> None:
         self.cfg = cfg
         self.sensor = sensor
         self.sensor_opt = sensor_opt

@@ -1,32 +1,13 @@
-"""Progress bars for long work (rich), silent under ``--quiet`` or when stderr is not a terminal."""
+"""Progress bars for long work (rich), silent under ``--quiet`` or when stderr is not a terminal.
+
+rich is imported only when a bar is shown: ``bgs -q run`` (as Slurm runs it) skips its ~0.1 s
+import, which every resumed job would pay before its first frame (issue P4).
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-
-from rich.console import Console
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    ProgressColumn,
-    Task,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
-from rich.text import Text
-
-stderr = Console(stderr=True)
-
-
-class _RateColumn(ProgressColumn):
-    """Items per second, as frames per second."""
-
-    def render(self, task: Task) -> Text:
-        speed = task.finished_speed or task.speed
-        return Text(f"{speed:5.1f} fps" if speed else "    – fps", style="cyan")
 
 
 @contextmanager
@@ -37,19 +18,7 @@ def progress_bar(
     if not enabled:
         yield lambda _n, status="": None
         return
-    columns = (
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        _RateColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        TextColumn("{task.fields[status]}"),
-    )
-    with Progress(*columns, console=stderr, transient=False) as progress:
-        task = progress.add_task(description, total=total, status="")
+    from bgs_batch._rich_progress import rich_progress
 
-        def advance(n: int, status: str = "") -> None:
-            progress.update(task, advance=n, status=status)
-
+    with rich_progress(description, total) as advance:
         yield advance

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from bgs_batch.config import SeedingConfig
+from bgs_batch.geometry import kd_tree
 
 CANNY_THRESHOLDS = (100, 200)
 CANNY_APERTURE = 3
@@ -77,5 +77,5 @@ def far_from(existing: np.ndarray, candidates: np.ndarray, min_distance: float) 
     """Boolean mask of candidates with no existing point within `min_distance` (KD-tree)."""
     if len(existing) == 0 or len(candidates) == 0:
         return np.ones(len(candidates), bool)
-    dist, _ = cKDTree(existing).query(candidates, k=1, distance_upper_bound=min_distance)
+    dist, _ = kd_tree(existing).query(candidates, k=1, distance_upper_bound=min_distance)
     return ~np.isfinite(dist)

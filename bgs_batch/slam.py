@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from bgs_batch.adam import Adam
 from bgs_batch.config import Config, SubmapConfig
 from bgs_batch.frames import Level, camera_for, crop_and_clip, downsample, to_level
 from bgs_batch.gaussian_map import GaussianMap
@@ -83,8 +84,7 @@ class Slam:
         self.rng = np.random.default_rng(self.cfg.seed)
         self.sensor = SensorNoiseNet(self.cfg.uncertainty.sensor_hidden,
                                      self.cfg.uncertainty.sensor_min)  # fmt: skip
-        self.sensor_opt = torch.optim.Adam(self.sensor.parameters(),
-                                           lr=self.cfg.uncertainty.sensor_lr)  # fmt: skip
+        self.sensor_opt = Adam(self.sensor.parameters(), lr=self.cfg.uncertainty.sensor_lr)
         self.tracker = Tracker(self.cfg)
         self.mapper = Mapper(self.cfg, self.sensor, self.sensor_opt)
         self.selector = KeyframeSelector(self.cfg.keyframes)
@@ -104,6 +104,7 @@ class Slam:
     def process(self, frame: Frame) -> dict[str, Any]:
         """Track, select and map one frame; return its log event."""
         cfg = self.cfg
+        totals_before = asdict(self.timings)
         full, level = self.prepare(frame)
         event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
 
@@ -155,8 +156,15 @@ class Slam:
             event.update(map_added=stats.added, map_pruned=stats.pruned, map_loss=stats.loss)
             self.timings.add("mapping", time.perf_counter() - start)
         event.update(submap=len(self.submaps), gaussians=len(self.gmap),
-                     pose=[float(x) for x in c2w[:3].ravel()])  # fmt: skip
+                     pose=[float(x) for x in c2w[:3].ravel()],
+                     stage_s=self._stages_since(totals_before))  # fmt: skip
         return event
+
+    def _stages_since(self, totals_before: dict[str, float]) -> dict[str, float]:
+        """Seconds per stage since the run's totals were `totals_before` (the stages that ran)."""
+        return {stage: total - totals_before[stage]
+                for stage, total in asdict(self.timings).items()
+                if total != totals_before[stage]}  # fmt: skip
 
     def _should_switch(self, index: int, c2w: np.ndarray) -> bool:
         s = self.cfg.submaps

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
+from bgs_batch.adam import Adam
 from bgs_batch.config import Config
 from bgs_batch.frames import Level, block_mean, downsample
 from bgs_batch.gaussian_map import GaussianMap
@@ -126,7 +127,7 @@ class Tracker:
         t = self.cfg.tracking
         rho = torch.zeros(3, dtype=torch.float64, requires_grad=True)
         phi = torch.zeros(3, dtype=torch.float64, requires_grad=True)
-        optimizer = torch.optim.Adam(
+        optimizer = Adam(
             [{"params": [rho], "lr": t.trans_lr * lr_scale},
              {"params": [phi], "lr": t.rot_lr * lr_scale}], amsgrad=True
         )  # fmt: skip

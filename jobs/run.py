@@ -6,6 +6,7 @@ Job directory::
     lock             present while a process runs the job (host and PID)
     config.json      the resolved configuration (preset + overrides)
     log.jsonl        one event per frame: pose, keyframe decision and scores, losses, timings
+                     (``TIMING_FIELDS``: seconds since the job started, and per stage)
     trajectory.txt   estimated camera-to-world poses, TUM format
     submaps/         frozen submaps (Gaussian parameters + keyframe ids), one file each
     sensor_net.pt    the trained sensor-noise network (state dict)
@@ -56,6 +57,8 @@ class RunSummary:
 ERROR_FILE = "error.json"
 SUMMARY_FILE = "summary.json"
 LOG_FILE = "log.jsonl"
+TIMING_FIELDS = ("elapsed_s", "stage_s")
+"""Event fields that measure time: the only ones that differ between runs of the same job."""
 TORCH_THREADS = 1  # torch only runs small per-pixel ops; its spinning OpenMP pool fights numba's
 
 

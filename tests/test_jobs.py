@@ -20,7 +20,7 @@ from converters.pipeline import write_store
 from converters.tum import TumOptions, plan_tum
 from jobs.checkpoint import CHECKPOINT_DIR, load_latest, write_checkpoint
 from jobs.jobdir import LOCK_FILE, JobError, job_lock
-from jobs.run import run_job
+from jobs.run import TIMING_FIELDS, run_job
 
 TINY = ["mapping.iterations=2", "mapping.new_submap_iterations=2", "tracking.iterations=2"]
 
@@ -124,7 +124,7 @@ def assert_same_result(job, reference):
         assert all(torch.equal(a[k], b[k]) for k in b)
     ours = [json.loads(x) for x in (job / "log.jsonl").read_text().splitlines()]
     theirs = [json.loads(x) for x in (reference / "log.jsonl").read_text().splitlines()]
-    strip = ("elapsed_s",)
+    strip = TIMING_FIELDS
     assert [{k: v for k, v in e.items() if k not in strip} for e in ours] == [
         {k: v for k, v in e.items() if k not in strip} for e in theirs]
 

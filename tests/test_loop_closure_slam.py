@@ -17,7 +17,7 @@ from bgs_batch.store import FrameStore
 from converters.pipeline import write_store
 from converters.synthetic import SynthConfig, synthesize
 from converters.tum import TumOptions, plan_tum
-from jobs.run import run_job
+from jobs.run import TIMING_FIELDS, run_job
 from outputs.trajectory import read_tum
 
 SIZE = {"width": 160, "height": 120, "seed": 1, "fps": 10.0, "speed": 0.2}
@@ -134,7 +134,7 @@ def test_resume_across_a_loop_closure_equals_uninterrupted(loop_case, tmp_path):
         for key in ("params", "raw_params"):
             if key in theirs:
                 assert all(torch.equal(ours[key][n], theirs[key][n]) for n in theirs[key])
-    strip = ("elapsed_s",)
+    strip = TIMING_FIELDS
     assert [{k: v for k, v in e.items() if k not in strip} for e in read_log(job)] == [
         {k: v for k, v in e.items() if k not in strip} for e in read_log(reference)
     ]

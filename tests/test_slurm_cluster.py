@@ -25,6 +25,7 @@ from conftest import make_tum_folder
 
 from converters.pipeline import write_store
 from converters.tum import TumOptions, plan_tum
+from jobs.run import TIMING_FIELDS
 
 pytestmark = pytest.mark.slow
 
@@ -133,7 +134,7 @@ def assert_bitwise_equal(job: Path, reference: Path) -> None:
 
     def events(path: Path) -> list[dict]:
         lines = (path / "log.jsonl").read_text().splitlines()
-        return [{k: v for k, v in json.loads(x).items() if k != "elapsed_s"} for x in lines]
+        return [{k: v for k, v in json.loads(x).items() if k not in TIMING_FIELDS} for x in lines]
 
     assert events(job) == events(reference)
     assert len(events(job)) == FRAMES

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
+from bgs_batch.geometry import kd_tree
 from bgs_batch.render import se3_exp
 
 CONVERGED = 1e-7  # stop when the update twist is this small (rad / m)
@@ -29,7 +29,7 @@ class IcpResult:
 def normals(points: np.ndarray, neighbours: int) -> np.ndarray:
     """Unit normals from the smallest principal axis of each point's neighbourhood."""
     k = min(neighbours, len(points))
-    _, idx = cKDTree(points).query(points, k=k)
+    _, idx = kd_tree(points).query(points, k=k)
     local = points[np.atleast_2d(idx)]
     centred = local - local.mean(1, keepdims=True)
     _, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
@@ -52,7 +52,7 @@ def point_to_plane(
     neighbours: int,
 ) -> IcpResult:
     """Align `source` (n, 3) to `target` (m, 3) from `init` by Gauss-Newton point-to-plane."""
-    tree = cKDTree(target)
+    tree = kd_tree(target)
     target_normals = normals(target, neighbours)
     transform = init.copy()
     for _ in range(iterations):

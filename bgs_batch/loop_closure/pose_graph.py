@@ -17,10 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from bgs_batch.config import LoopClosureConfig
+from bgs_batch.geometry import kd_tree
 
 REFERENCE_NODE = 0  # the first submap defines the world frame
 DOF = 6
@@ -42,7 +41,7 @@ def information(source: np.ndarray, target: np.ndarray, transform: np.ndarray,
     if len(source) == 0 or len(target) == 0:
         return out
     moved = source @ transform[:3, :3].T + transform[:3, 3]
-    dist, idx = cKDTree(target).query(moved, distance_upper_bound=max_distance)
+    dist, idx = kd_tree(target).query(moved, distance_upper_bound=max_distance)
     x = target[idx[np.isfinite(dist)]]
     if len(x) == 0:
         return out
@@ -65,6 +64,8 @@ def spread_loop(corrections: np.ndarray, edge: Edge) -> np.ndarray:
     large drift would look like an outlier and be pruned. From here it is judged by how well
     the whole graph can agree with it.
     """
+    from scipy.spatial.transform import Rotation  # on first use, as `kd_tree` (issue P4)
+
     out = corrections.copy()
     s, t = edge.source, edge.target
     drift = out[t] @ edge.transform @ np.linalg.inv(out[s])

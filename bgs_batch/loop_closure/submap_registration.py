@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from bgs_batch.config import Config
 from bgs_batch.frames import block_mean, downsample
 from bgs_batch.gaussian_map import GaussianMap
+from bgs_batch.geometry import kd_tree
 from bgs_batch.loop_closure.icp import IcpResult, point_to_plane, subsample
 from bgs_batch.losses import predictive_variance
 from bgs_batch.mapping import Keyframe
@@ -82,7 +82,7 @@ def overlap(source: np.ndarray, target: np.ndarray, transform: np.ndarray, radiu
     if len(source) == 0 or len(target) == 0:
         return 0.0
     moved = source @ transform[:3, :3].T + transform[:3, 3]
-    dist, _ = cKDTree(target).query(moved, distance_upper_bound=radius)
+    dist, _ = kd_tree(target).query(moved, distance_upper_bound=radius)
     return float(np.isfinite(dist).mean())
 
 
