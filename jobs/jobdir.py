@@ -43,31 +43,65 @@ def file_sha256(path: Path) -> str:
 
 
 IDENTITY = ("store", "config", "max_frames")  # what must not change between runs of a job
+STORE_IDENTITY = ("path", "sha256")  # of the store entry; size and mtime only skip re-hashing
 
 
-def job_record(store: Path, config: dict[str, Any], max_frames: int | None) -> dict[str, Any]:
-    """What identifies a job: its input (path and checksum), settings and package version."""
+def read_record(job_dir: Path) -> dict[str, Any] | None:
+    """The job's ``job.json``, or None when there is none (or it is unreadable)."""
+    try:
+        return json.loads((job_dir / JOB_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def store_entry(store: Path, known: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Path, SHA-256, size and modification time of a store.
+
+    Hashing a multi-GB store takes seconds, which every resumed job would pay before its first
+    frame; when `known` (the entry recorded in ``job.json``) names the same path, size and
+    modification time, its checksum is reused (rsync's quick check), else the file is hashed.
+    """
+    path, stat = Path(store).resolve(), os.stat(store)
+    entry = {"path": str(path), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+    same_file = known is not None and all(known.get(k) == v for k, v in entry.items())
+    entry["sha256"] = known["sha256"] if same_file else file_sha256(path)
+    return entry
+
+
+def job_record(store: Path, config: dict[str, Any], max_frames: int | None,
+               previous: dict[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
+    """What identifies a job: its input (path and checksum), settings and package version;
+    `previous` is the job's earlier record, whose checksum is reused for an unchanged store."""
     return {
-        "store": {"path": str(Path(store).resolve()), "sha256": file_sha256(store)},
+        "store": store_entry(store, (previous or {}).get("store")),
         "config": config,
         "max_frames": max_frames,
         "package_version": __version__,
     }
 
 
+def _identity(record: dict[str, Any], name: str) -> Any:
+    value = record.get(name)
+    if name == "store" and isinstance(value, dict):
+        return {k: value.get(k) for k in STORE_IDENTITY}
+    return value
+
+
 def check_or_write_record(job_dir: Path, record: dict[str, Any], force: bool) -> None:
-    """Write ``job.json`` for a new job; for an existing one, refuse changed inputs or settings."""
+    """Write ``job.json`` for a new job; for an existing one, refuse changed inputs or settings
+    (a store with the same checksum but a new modification time is the same input)."""
     path = job_dir / JOB_FILE
-    if path.exists() and not force:
-        old = json.loads(path.read_text())
-        changes = [name for name in IDENTITY if old.get(name) != record[name]]
+    old = read_record(job_dir) if path.exists() else None
+    if old is not None and not force:
+        changes = [name for name in IDENTITY if _identity(old, name) != _identity(record, name)]
         if changes:
             what = " and ".join(changes)
             raise JobError(
                 f"{job_dir} belongs to a job with a different {what} (see {path}); use another "
                 "--job-dir, or pass --force to restart this one with the new settings"
             )
-        return
+        if old == record:
+            return
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(record, indent=2, sort_keys=True))
     os.replace(tmp, path)

@@ -34,7 +34,7 @@ from bgs_batch.metrics import ate
 from bgs_batch.slam import Slam
 from bgs_batch.store import FrameStore
 from jobs.checkpoint import load_latest, write_checkpoint
-from jobs.jobdir import check_or_write_record, job_lock, job_record
+from jobs.jobdir import check_or_write_record, job_lock, job_record, read_record
 from jobs.signals import Preempted, stop_requests
 from outputs.trajectory import write_tum
 
@@ -88,7 +88,7 @@ def run_job(
         pass
     job_dir.mkdir(parents=True, exist_ok=True)
     with job_lock(job_dir):
-        record = job_record(store_path, cfg.to_dict(), max_frames)
+        record = job_record(store_path, cfg.to_dict(), max_frames, read_record(job_dir))
         check_or_write_record(job_dir, record, force)
         (job_dir / ERROR_FILE).unlink(missing_ok=True)
         try:

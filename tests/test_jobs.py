@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import h5py
 import pytest
 import torch
 from click.testing import CliRunner
@@ -47,6 +48,29 @@ def test_job_json_records_inputs_and_refuses_changes(tmp_path):
     run_job(other, job, cfg, max_frames=2, force=True)
     assert json.loads((job / "job.json").read_text())["store"]["path"] == str(other.resolve())
     assert not (job / LOCK_FILE).exists()
+
+
+def test_unchanged_store_is_not_hashed_again(tmp_path, monkeypatch):
+    import jobs.jobdir as jobdir
+
+    store = tiny_store(tmp_path)
+    job = tmp_path / "job"
+    cfg = load_config("cpu", TINY)
+    run_job(store, job, cfg, max_frames=1)
+    hashed = []
+    real_hash = jobdir.file_sha256
+    monkeypatch.setattr(jobdir, "file_sha256", lambda p: hashed.append(p) or real_hash(p))
+    run_job(store, job, cfg, max_frames=1)  # same size and mtime: the recorded checksum
+    assert hashed == []
+    os.utime(store, ns=(store.stat().st_atime_ns, store.stat().st_mtime_ns + 10**9))
+    run_job(store, job, cfg, max_frames=1)  # touched, same content: hashed, accepted, recorded
+    assert len(hashed) == 1
+    recorded = json.loads((job / "job.json").read_text())["store"]
+    assert recorded["mtime_ns"] == store.stat().st_mtime_ns
+    with h5py.File(store, "r+") as fh:  # other content: hashed and refused
+        fh["rgb"][0, 0, 0] = 255 - fh["rgb"][0, 0, 0]
+    with pytest.raises(JobError, match="different store"):
+        run_job(store, job, cfg, max_frames=1)
 
 
 def test_second_run_on_a_locked_job_is_refused(tmp_path):
