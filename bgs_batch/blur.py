@@ -1,9 +1,9 @@
-"""Separable Gaussian blur with zero padding: SSIM's filter, as a numba kernel with autograd.
+"""Separable Gaussian blur with zero padding: SSIM's filter, as a numba kernel.
 
 PyTorch's CPU depthwise ``conv2d`` took ~180 ms per SSIM forward+backward at 320×240 (two
 thirds of a mapping iteration); these loops over contiguous rows vectorise and take a few ms.
 With a symmetric window and zero padding the blur is a symmetric linear operator, so its
-backward is the same blur applied to the upstream gradient.
+backward is the same blur applied to the upstream gradient (`bgs_batch.loss_kernels`' SSIM).
 """
 
 from __future__ import annotations
@@ -49,32 +49,11 @@ def _blur_kernel(src, taps, tmp, out):
 
 
 def blur_planes(src: np.ndarray, taps: np.ndarray) -> np.ndarray:
-    """Blur each of the contiguous [N,H,W] planes with the separable window ``taps`` (same
-    dtype), zero padding; a new array."""
-    tmp, out = np.empty_like(src), np.empty_like(src)
-    _blur_kernel(src, taps, tmp, out)
-    return out
-
-
-def _blur(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
-    src = images.detach().contiguous().numpy()
-    return torch.from_numpy(blur_planes(src, taps.detach().numpy().astype(src.dtype)))
-
-
-class _GaussianBlur(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
-        ctx.taps = taps
-        return _blur(images, taps)
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):
-        return _blur(grad, ctx.taps), None  # the blur is its own adjoint
-
-
-def gaussian_blur(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
-    """Blur each of the [N,H,W] images with the separable window ``taps`` (odd length,
-    symmetric), zero padding, same size: equal to ``conv2d`` with ``taps ⊗ taps``."""
-    if images.dim() != 3 or taps.dim() != 1 or taps.shape[0] % 2 != 1:
+    """Blur each of the contiguous [N,H,W] planes with the separable window ``taps`` (odd
+    length, symmetric, same dtype), zero padding, same size: equal to ``conv2d`` with
+    ``taps ⊗ taps``. A new array. Being its own adjoint, it also blurs gradients back."""
+    if src.ndim != 3 or taps.ndim != 1 or taps.shape[0] % 2 != 1:
         raise ValueError("expected images [N,H,W] and an odd-length 1-D window")
-    return _GaussianBlur.apply(images, taps)
+    tmp, out = np.empty_like(src), np.empty_like(src)
+    _blur_kernel(np.ascontiguousarray(src), taps.astype(src.dtype), tmp, out)
+    return out
