@@ -11,12 +11,19 @@ connection asked for `header_only` are read through sqlite's incremental blob I/
 first, only the bytes up to the header stamp leave the file. ``metadata.yaml`` compression is
 honoured: ``file`` (each ``.db3.zstd`` is decompressed once, into a temporary folder, when the bag
 is opened) and ``message`` (each message is decompressed as it is read).
+
+Rows are read on a helper thread, a bounded number of bytes ahead of the consumer
+(`_ReadAhead`). sqlite hands the GIL back at every row it steps to (and at every blob it reads);
+on the consumer's thread, which in the converter also feeds the decoding workers and writes the
+store, each of those handovers can mean waiting for a busy worker to give the GIL up again. ROS1
+and MCAP readers hand it over once per chunk of many messages, so they have no such cost.
 """
 
 from __future__ import annotations
 
 import sqlite3
 import threading
+from collections import deque
 from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path, PurePath
@@ -46,6 +53,9 @@ MSG_FORMAT, IDL_FORMAT = "ros2msg", "ros2idl"
 IDL_SEPARATOR = "=" * 80 + "\n"
 IDL_HEADER = "IDL: "
 COPY_BLOCK = 1 << 20  # bytes per read when decompressing a file-compressed bag
+# how far the helper thread reads ahead: a few frames of a robot's topics, whatever their size
+READ_AHEAD_BYTES = 8 << 20
+READ_AHEAD_MESSAGES = 16
 
 
 @dataclass(frozen=True)
@@ -106,6 +116,7 @@ class Ros2Sqlite:
         self._typestore = get_typestore(Stores.EMPTY)
         self._registered: set[str] = set()
         self._lock = threading.Lock()
+        self._read_aheads: set[_ReadAhead] = set()  # running passes, stopped before closing
         try:
             files = [path] if metadata is None else self._storage_files(path, metadata)
             by_key: dict[tuple[str, str], Ros2Connection] = {}
@@ -208,14 +219,24 @@ class Ros2Sqlite:
         self, connections: Collection[Ros2Connection] = (), *, header_only: Collection[Any] = ()
     ) -> Iterator[tuple[Ros2Connection, int, bytes]]:
         """(connection, log time ns, CDR bytes) of the wanted connections. Messages of the
-        `header_only` connections after the first of each are cut after the header stamp."""
+        `header_only` connections after the first of each are cut after the header stamp.
+        Read on a helper thread, at most `READ_AHEAD_BYTES` ahead."""
         wanted = {c.id for c in connections or self.connections}
         short = set() if self._compressed_messages else {c.id for c in header_only}
+        rows = (
+            message
+            for db, ids in self._databases
+            for message in self._file_messages(db, ids, wanted, short)
+        )
+        read_ahead = _ReadAhead(rows)
+        self._read_aheads.add(read_ahead)
         try:
-            for db, ids in self._databases:
-                yield from self._file_messages(db, ids, wanted, short)
+            yield from read_ahead
         except sqlite3.Error as err:
             raise BagReadError(f"the database cannot be read ({err})") from err
+        finally:
+            read_ahead.close()
+            self._read_aheads.discard(read_ahead)
 
     def _file_messages(
         self,
@@ -275,12 +296,86 @@ class Ros2Sqlite:
     def close(self) -> None:
         """Close the databases and delete decompressed copies; idempotent. Deserialising keeps
         working (the types stay registered)."""
+        read_aheads, self._read_aheads = self._read_aheads, set()
+        for read_ahead in read_aheads:  # passes left unfinished: they use the databases
+            read_ahead.close()
         databases, self._databases = self._databases, []
         for db, _ in databases:
             db.close()
         if self._temp is not None:
             self._temp.cleanup()
             self._temp = None
+
+
+class _ReadAhead:
+    """Iterates `messages` (connection, time, bytes) on a helper thread, holding at most
+    `READ_AHEAD_BYTES` (or `READ_AHEAD_MESSAGES`) not yet taken, but always at least one.
+
+    An error of the helper is raised to the consumer where the message would have come; `close`
+    stops the helper and waits for it, whether or not it has finished.
+    """
+
+    def __init__(self, messages: Iterator[tuple[Any, int, bytes]]) -> None:
+        self._ready: deque[tuple[Any, int, bytes]] = deque()
+        self._bytes = 0
+        self._done = False
+        self._stop = False
+        self._error: BaseException | None = None
+        self._changed = threading.Condition()
+        self._thread = threading.Thread(
+            target=self._read, args=(messages,), name="db3-read-ahead", daemon=True
+        )
+        self._thread.start()
+
+    def _read(self, messages: Iterator[tuple[Any, int, bytes]]) -> None:
+        try:
+            for message in messages:
+                size = len(message[2])
+                with self._changed:
+                    while not self._stop and self._full(size):
+                        self._changed.wait()
+                    if self._stop:
+                        return
+                    self._ready.append(message)
+                    self._bytes += size
+                    self._changed.notify_all()
+        except BaseException as err:  # handed to the consumer, raised there
+            self._error = err
+        finally:
+            close = getattr(messages, "close", None)
+            if close is not None:  # ends the statement on this thread, which runs it
+                close()
+            with self._changed:
+                self._done = True
+                self._changed.notify_all()
+
+    def _full(self, size: int) -> bool:
+        """Whether a message of `size` bytes must wait for the consumer to take some."""
+        return bool(self._ready) and (
+            self._bytes + size > READ_AHEAD_BYTES or len(self._ready) >= READ_AHEAD_MESSAGES
+        )
+
+    def __iter__(self) -> Iterator[tuple[Any, int, bytes]]:
+        while True:
+            with self._changed:
+                while not self._ready and not self._done:
+                    self._changed.wait()
+                if not self._ready:
+                    if self._error is not None:
+                        raise self._error
+                    return
+                message = self._ready.popleft()
+                self._bytes -= len(message[2])
+                self._changed.notify_all()
+            yield message
+
+    def close(self) -> None:
+        """Stop reading and wait for the helper; idempotent."""
+        with self._changed:
+            self._stop = True
+            self._changed.notify_all()
+        if self._thread is not threading.current_thread():
+            self._thread.join()
 
 
 def _marks(ids: list[int]) -> str:

@@ -346,6 +346,62 @@ def test_db3_plan_opens_the_bag_once(tmp_path, monkeypatch):
     assert not any(scratch.iterdir())
 
 
+def test_db3_read_ahead_stops_with_its_pass(tmp_path, monkeypatch):
+    """Rows are read on a helper thread a bounded number of messages ahead; it ends when its
+    pass ends, is abandoned or the reader closes, and its errors reach the consumer in order."""
+    import threading
+
+    import converters.bag_sqlite as bag_sqlite
+
+    def helpers() -> int:
+        return sum(t.name == "db3-read-ahead" for t in threading.enumerate())
+
+    monkeypatch.setattr(bag_sqlite, "READ_AHEAD_MESSAGES", 1)
+    folder = _tiny_bag(tmp_path / "rec", "sqlite3")
+    with open_bag(folder) as reader:
+        everything = [(c.topic, t, raw) for c, t, raw in reader.messages()]
+        assert helpers() == 0
+        abandoned = reader.messages()
+        assert next(abandoned)[1] == everything[0][1]
+        assert helpers() == 1
+        abandoned.close()
+        assert helpers() == 0
+        unfinished = reader.messages()
+        next(unfinished)
+    assert helpers() == 0  # closing the reader stopped it
+    assert reader._read_aheads == set()
+
+    def failing():
+        yield from everything[:2]
+        raise sqlite3.OperationalError("disk I/O error")
+
+    got = []
+    with pytest.raises(sqlite3.OperationalError, match="disk I/O"):
+        got.extend(bag_sqlite._ReadAhead(failing()))
+    assert got == everything[:2]
+
+
+def test_conversion_keeps_frame_buffers_in_heap(tmp_path):
+    """On glibc the pipeline raises malloc's mmap and trim thresholds once, so megabyte frame
+    buffers are reused rather than faulted in afresh every frame (see converters.pipeline)."""
+    import platform
+    import resource
+
+    from converters.pipeline import keep_frame_buffers_in_heap
+
+    glibc = platform.libc_ver()[0] == "glibc"
+    assert keep_frame_buffers_in_heap() is glibc
+    assert keep_frame_buffers_in_heap() is glibc  # idempotent
+    if not glibc:
+        pytest.skip("mallopt thresholds are glibc's")
+    # buffers each a little bigger than any freed before, as ISA-L's output grows: glibc's own
+    # thresholds would map (and fault in) every one of them afresh, ~8000 faults in all
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for k in range(20):
+        np.ones((1 << 20) + k * (64 << 10), np.uint8)
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults < 2000
+
+
 def test_db3_idl_definitions():
     """rosbag2 records a type's IDL alone or, with the IDLs it uses, each after a header."""
     a = "module pkg { module msg { struct A { int32 value; }; }; };"
