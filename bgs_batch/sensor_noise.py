@@ -9,6 +9,8 @@ the map during mapping only; in tracking it is evaluated once per frame and deta
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -24,7 +26,9 @@ OUTPUT_CHANNELS = 2  # colour variance, depth variance
 class SensorNoiseNet(nn.Module):
     """Predicts σ²_sensor for colour and depth at every pixel of an RGB-D frame."""
 
-    def __init__(self, hidden: int = 32, floor: float = 1e-4) -> None:
+    def __init__(self, hidden: int = 32, floor: float = 1e-4, initial: float = 0.0) -> None:
+        """`initial` > `floor`: the head's bias starts at softplus⁻¹(initial − floor), so the
+        untrained network predicts about `initial` everywhere (0: PyTorch's default bias)."""
         super().__init__()
         self.floor = floor
         convs = [nn.Conv2d(INPUT_CHANNELS, hidden, 3, padding=1)]
@@ -32,6 +36,11 @@ class SensorNoiseNet(nn.Module):
         pixels = [nn.Conv2d(hidden, hidden, 1) for _ in range(PIXEL_LAYERS - 1)]
         self.hidden = nn.ModuleList(convs + pixels)
         self.head = nn.Conv2d(hidden, OUTPUT_CHANNELS, 1)
+        if initial:
+            if initial <= floor:
+                raise ValueError(f"initial sensor variance {initial} must exceed the floor {floor}")
+            with torch.no_grad():
+                self.head.bias.fill_(math.log(math.expm1(initial - floor)))
 
     def forward(self, rgb: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Variances ([H,W,1] colour, [H,W,1] depth) from rgb [H,W,3] in [0,1], depth [H,W,1] m."""

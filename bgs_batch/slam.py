@@ -82,9 +82,9 @@ class Slam:
     def __post_init__(self) -> None:
         torch.manual_seed(self.cfg.seed)
         self.rng = np.random.default_rng(self.cfg.seed)
-        self.sensor = SensorNoiseNet(self.cfg.uncertainty.sensor_hidden,
-                                     self.cfg.uncertainty.sensor_min)  # fmt: skip
-        self.sensor_opt = Adam(self.sensor.parameters(), lr=self.cfg.uncertainty.sensor_lr)
+        u = self.cfg.uncertainty
+        self.sensor = SensorNoiseNet(u.sensor_hidden, u.sensor_min, u.sensor_initial)
+        self.sensor_opt = Adam(self.sensor.parameters(), lr=u.sensor_lr)
         self.tracker = Tracker(self.cfg)
         self.mapper = Mapper(self.cfg, self.sensor, self.sensor_opt)
         self.selector = KeyframeSelector(self.cfg.keyframes)

@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from bgs_batch.config import KeyframeConfig, TrackingConfig, UncertaintyConfig
 from bgs_batch.keyframes import KeyframeSelector
@@ -140,6 +141,20 @@ def test_sensor_network_shapes_floor_and_gradients():
     with torch.no_grad():  # the floor holds however negative the head's output
         net.head.bias.fill_(-1e3)
         assert torch.allclose(net(rgb, depth)[0], torch.tensor(1e-4, dtype=torch.float64))
+
+
+def test_sensor_network_initial_output():
+    """`initial` sets the head's bias so that the untrained net predicts about that variance
+    (closed form: softplus(b) + floor = initial); it must exceed the floor."""
+    torch.manual_seed(0)
+    net = SensorNoiseNet(hidden=8, floor=1e-4, initial=1e-3).double()
+    assert torch.allclose(F.softplus(net.head.bias) + 1e-4, torch.tensor(1e-3, dtype=torch.float64))
+    var_c, var_d = net(*images(10, 7)[:2])
+    for var in (var_c, var_d):  # the default-initialised weights spread it by well under 10x
+        assert float(var.min()) > 1e-4 and float(var.max()) < 1e-2
+        assert float(var.median()) == pytest.approx(1e-3, rel=0.5)
+    with pytest.raises(ValueError, match="must exceed the floor"):
+        SensorNoiseNet(floor=1e-3, initial=1e-3)
 
 
 def test_keyframe_rule():
