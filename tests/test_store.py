@@ -1,3 +1,5 @@
+import zlib
+
 import h5py
 import numpy as np
 import pytest
@@ -61,6 +63,18 @@ def test_round_trip_bitwise(tmp_path, dtype):
                 assert np.array_equal(frame.pose_gt, pose)
         assert np.isnan(store.poses_gt[1]).all()
         assert raw["rgb"].chunks == (1, 24, 32, 3) and raw["rgb"].compression == "gzip"
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_depth_chunks_hold_hdf5_shuffled_bytes(tmp_path, dtype):
+    """Our shuffle puts the bytes in the order HDF5's own shuffle filter does."""
+    _, depth, _, _ = next(random_frames(1, h=7, w=13, dtype=dtype))
+    with h5py.File(tmp_path / "ref.h5", "w") as f:
+        ds = f.create_dataset("d", data=depth[None], chunks=(1, 7, 13), compression="gzip",
+                              shuffle=True)  # fmt: skip
+        hdf5_shuffled = zlib.decompress(ds.id.read_direct_chunk((0, 0, 0))[1])
+    ours = encode_frame(np.zeros((7, 13, 3), np.uint8), depth, 0.0).depth_chunk
+    assert zlib.decompress(ours) == hdf5_shuffled
 
 
 def test_indexing_and_ordered_subsets(tmp_path):
