@@ -21,6 +21,7 @@ from bgs_batch.losses import predictive_variance, surprise_scores, tracking_loss
 from bgs_batch.render import Gaussians, RasterOutput, render, se3_exp
 
 Variances = tuple[torch.Tensor, torch.Tensor]  # sensor colour [H,W,1], sensor depth [H,W,1]
+Images = tuple[torch.Tensor, ...]  # colour, depth, Σ_C, Σ_D of one render
 
 
 @dataclass(frozen=True)
@@ -89,12 +90,15 @@ class Tracker:
             ):
                 variances = self._sensor_at(sensor_color, sensor_depth, factor)
                 lr_scale = self.cfg.tracking.level_lr_factor**depth
-                w2c, loss, used = self._optimise(gaussians, level, variances, w2c, budget,
-                                                 lr_scale)  # fmt: skip
+                w2c, loss, used, best = self._optimise(gaussians, level, variances, w2c, budget,
+                                                       lr_scale)  # fmt: skip
                 iterations += used
-            with torch.no_grad():
-                out, var_c, var_d = self._render(gaussians, level, variances, w2c)
-                scores = surprise_scores(out.color, out.depth, level.rgb, level.depth, var_c, var_d)
+            if best is None:  # no finite loss at this level (or no iterations): render the pose
+                with torch.no_grad():
+                    out, var_c, var_d = self._render(gaussians, level, variances, w2c)
+                best = (out.color, out.depth, var_c, var_d)
+            color, depth_image, var_c, var_d = best  # the finest level's render at its best pose
+            scores = surprise_scores(color, depth_image, level.rgb, level.depth, var_c, var_d)
         finally:
             for p in gmap.params.values():
                 p.requires_grad_(True)
@@ -121,9 +125,10 @@ class Tracker:
         w2c_start: torch.Tensor,
         budget: int,
         lr_scale: float = 1.0,
-    ) -> tuple[torch.Tensor, float, int]:
+    ) -> tuple[torch.Tensor, float, int, Images | None]:
         """Adam on ξ at one pyramid level (rates × `lr_scale`); returns the lowest-loss pose,
-        its loss and the iterations used."""
+        its loss, the iterations used and the render there (colour, depth, Σ_C, Σ_D; None when
+        no iteration gave a finite loss), which the surprise scores reuse."""
         t = self.cfg.tracking
         rho = torch.zeros(3, dtype=torch.float64, requires_grad=True)
         phi = torch.zeros(3, dtype=torch.float64, requires_grad=True)
@@ -132,6 +137,7 @@ class Tracker:
              {"params": [phi], "lr": t.rot_lr * lr_scale}], amsgrad=True
         )  # fmt: skip
         best_w2c, best, stale, used = w2c_start, float("inf"), 0, 0
+        best_images: Images | None = None
         for used in range(1, budget + 1):  # noqa: B007 - the count is returned
             w2c = se3_exp(torch.cat([rho, phi])) @ w2c_start
             out, var_c, var_d = self._render(gaussians, level, variances, w2c)
@@ -141,6 +147,7 @@ class Tracker:
             if value < best:
                 stale = 0 if best - value > t.early_stop_rel * abs(value) else stale + 1
                 best, best_w2c = value, w2c.detach()
+                best_images = tuple(x.detach() for x in (out.color, out.depth, var_c, var_d))
             else:
                 stale += 1
             if t.early_stop_patience and stale >= t.early_stop_patience:
@@ -148,4 +155,4 @@ class Tracker:
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-        return best_w2c, best, used
+        return best_w2c, best, used, best_images
