@@ -265,7 +265,16 @@ def load_config(preset: str = DEFAULT_PRESET, overrides: list[str] | None = None
         if not sep:
             raise ConfigError(f"--set {item!r}: expected key=value, e.g. tracking.iterations=50")
         set_value(config, key.strip(), parse_value(config, key.strip(), text.strip()))
+    check(config)
     return config
+
+
+def check(config: Config) -> None:
+    """Refuse value combinations a run cannot start from, naming the keys to change."""
+    u = config.uncertainty
+    if u.sensor_initial and u.sensor_initial <= u.sensor_min:
+        raise ConfigError(f"uncertainty.sensor_initial={u.sensor_initial} must exceed "
+                          f"uncertainty.sensor_min={u.sensor_min} (or be 0 for the default init)")
 
 
 def config_from_dict(data: dict[str, Any]) -> Config:

@@ -35,6 +35,7 @@ def test_round_trip_through_dict():
         ("tracking=3", "is a section"),
         ("seed", "expected key=value"),
         ("seed.x=1", "is a value"),
+        ("uncertainty.sensor_initial=1e-5", "must exceed uncertainty.sensor_min"),
     ],
 )
 def test_bad_overrides_are_explained(override, message):
