@@ -6,9 +6,11 @@ Usage: .venv/bin/python bench/slam_tum.py [--tum DIR] [--frames N] [--every-fram
 The store is converted with ``--undistort`` and bgs runs with ``crop_edge=50``, the TUM fr1
 camera settings of the reference systems; Open3D reads the same undistorted store. Rows, all
 from one run: Open3D's frame-to-model TSDF SLAM (voxel 1 cm, the classical CPU
-baseline); bgs `cpu` preset (surprise keyframes); bgs `cpu` mapping every frame on the first
-M frames (compared with the `cpu` run's ATE over the same frames; mapping every frame is ~3x
-slower); bgs `paper` preset on the first P frames. Targets (issue P3): ATE ≤ 2.5 cm,
+baseline); bgs `cpu` preset (surprise keyframes); the keyframe check on the first M frames, a
+`cpu` run with surprise keyframes against one mapping every frame (mapping every frame is ~3x
+slower; both runs see the same M frames and differ only in `keyframes.mode`, so loop closures
+that the full run finds later, and that move its early submaps, do not enter the ratio); bgs
+`paper` preset on the first P frames. Targets (issue P3): ATE ≤ 2.5 cm,
 ≥ 0.5 fps, keyframes ≤ 35 % with ATE ≤ 1.15× every-frame, peak RSS ≤ 4 GiB.
 Prints a table and one SUMMARY line.
 """
@@ -34,7 +36,6 @@ from converters.pipeline import write_store
 from converters.tum import TumOptions, plan_tum
 from jobs.run import run_job
 from outputs.export import ExportOptions, export_job
-from outputs.trajectory import read_tum
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 # The reference systems' TUM fr1 camera block (LoopSplat and the authors' configs): colour
@@ -127,6 +128,7 @@ def main() -> None:
         every_frames = min(args.every_frames, n)
         for name, preset, sets, frames in (
             ("bgs cpu", "cpu", [], n),
+            ("bgs cpu, keyframes", "cpu", [], every_frames),
             ("bgs cpu, map every frame", "cpu", ["keyframes.mode=every"], every_frames),
             ("bgs paper", "paper", [], min(args.paper_frames, n)),
         ):
@@ -135,9 +137,7 @@ def main() -> None:
             summary = run_job(store_path, job, cfg, max_frames=frames)
             runs[name] = summary
             rows.append((name, frames, summary.ate_rmse_m, summary.fps, summary.keyframes))
-            if name == "bgs cpu":  # its ATE over the frames the every-frame run covers
-                _, poses = read_tum(job / "trajectory.txt")
-                cpu_ate_every = ate(poses[:every_frames, :3, 3], gt[:every_frames])["rmse"]
+            if name == "bgs cpu":
                 ause = depth_ause(job)
     rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
@@ -149,12 +149,13 @@ def main() -> None:
         print(f"  {name:<30} {frames:>6} {err * 100:>8.2f} {fps:>7.2f} {1 / fps:>8.2f} "
               f"{kf_text:>10} {fps / o3d_fps:>12.2f}")  # fmt: skip
     cpu, every = runs["bgs cpu"], runs["bgs cpu, map every frame"]
+    keyframed = runs["bgs cpu, keyframes"]
     share = cpu.keyframes / cpu.frames
-    ratio = cpu_ate_every / every.ate_rmse_m
+    ratio = keyframed.ate_rmse_m / every.ate_rmse_m
     print(
-        f"  keyframe share {share:.0%} (target <= {TARGET_KEYFRAME_SHARE:.0%}); ATE over the "
-        f"first {every.frames} frames {cpu_ate_every * 100:.2f} cm vs every frame "
-        f"{every.ate_rmse_m * 100:.2f} cm = {ratio:.2f}x (target <= {TARGET_EVERY_RATIO}); "
+        f"  keyframe share {share:.0%} (target <= {TARGET_KEYFRAME_SHARE:.0%}); on the first "
+        f"{every.frames} frames surprise keyframes {keyframed.ate_rmse_m * 100:.2f} cm vs every "
+        f"frame {every.ate_rmse_m * 100:.2f} cm = {ratio:.2f}x (target <= {TARGET_EVERY_RATIO}); "
         f"peak RSS {rss_gb:.2f} GiB"
     )
     print("  depth AUSE-MAE (raw, m) on the cpu run's keyframes, by uncertainty:")
