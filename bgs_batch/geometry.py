@@ -57,6 +57,25 @@ def matrix_to_quat(rot: np.ndarray) -> np.ndarray:
     return q * np.where(q[..., 3:4] < 0, -1.0, 1.0)
 
 
+GIMBAL_LOCK = 1e-6  # cos(pitch) below this: roll and yaw turn about the same axis
+
+
+def rotation_angle_deg(rotation: np.ndarray) -> float:
+    """Angle (degrees) of a 3×3 rotation matrix."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
+
+
+def euler_zyx_deg(rotation: np.ndarray) -> np.ndarray:
+    """(roll, pitch, yaw) in degrees with ``R = R_z(yaw) R_y(pitch) R_x(roll)``; at gimbal lock
+    (pitch ±90°) the shared angle goes to roll and yaw is 0."""
+    r = rotation
+    cos_pitch = np.hypot(r[0, 0], r[1, 0])
+    pitch = np.arctan2(-r[2, 0], cos_pitch)
+    if cos_pitch < GIMBAL_LOCK:
+        return np.degrees([np.arctan2(-r[1, 2], r[1, 1]), pitch, 0.0])
+    return np.degrees([np.arctan2(r[2, 1], r[2, 2]), pitch, np.arctan2(r[1, 0], r[0, 0])])
+
+
 def pose_matrix(translation: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
     """Homogeneous transforms (..., 4, 4) from translations (..., 3) and quaternions (..., 4)."""
     translation = np.asarray(translation, np.float64)

@@ -21,6 +21,7 @@ from bgs_batch.adam import Adam
 from bgs_batch.config import Config, SubmapConfig
 from bgs_batch.frames import Level, camera_for, crop_and_clip, downsample, to_level
 from bgs_batch.gaussian_map import GaussianMap
+from bgs_batch.geometry import euler_zyx_deg, rotation_angle_deg
 from bgs_batch.keyframes import KeyframeSelector
 from bgs_batch.loop_closure import LoopCloser, inject_drift  # issue P8
 from bgs_batch.mapping import Keyframe, Mapper
@@ -30,13 +31,13 @@ from bgs_batch.tracking import Tracker, constant_velocity
 
 
 def exceeds_motion(first_c2w: np.ndarray, c2w: np.ndarray, cfg: SubmapConfig) -> bool:
-    """True when the camera moved more than the thresholds from the submap's first frame.
-
-    LoopSplat tests each Euler angle against 50°; we test the rotation angle itself, which does
-    not depend on the axis order and is never smaller than any single Euler angle's share.
-    """
+    """True when the camera moved more than the thresholds from the submap's first frame
+    (the motion expressed in that frame's camera coordinates)."""
     rel = np.linalg.inv(first_c2w) @ c2w
-    angle = np.degrees(np.arccos(np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1.0, 1.0)))
+    if cfg.rotation_measure == "angle":
+        angle = rotation_angle_deg(rel[:3, :3])
+    else:  # LoopSplat: any of roll, pitch, yaw
+        angle = float(np.abs(euler_zyx_deg(rel[:3, :3])).max())
     return bool(np.linalg.norm(rel[:3, 3]) > cfg.max_translation or angle > cfg.max_rotation_deg)
 
 

@@ -2,8 +2,17 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
-from bgs_batch.geometry import interpolate_poses, matrix_to_quat, pose_matrix, quat_to_matrix, slerp
+from bgs_batch.geometry import (
+    euler_zyx_deg,
+    interpolate_poses,
+    matrix_to_quat,
+    pose_matrix,
+    quat_to_matrix,
+    rotation_angle_deg,
+    slerp,
+)
 
 unit_quats = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(
     lambda q: np.linalg.norm(q) > 0.1
@@ -60,3 +69,23 @@ def test_interpolate_poses_few_samples(n):
                             np.array([0.0, 1.0]), 0.1)  # fmt: skip
     assert np.isnan(out[1]).all()
     assert np.isnan(out[0]).all() == (n == 0)
+
+
+@given(unit_quats)
+@settings(max_examples=200, deadline=None)
+def test_rotation_angle_and_euler_against_scipy(q):
+    rot = quat_to_matrix(q)
+    reference = Rotation.from_quat(q)
+    assert rotation_angle_deg(rot) == pytest.approx(np.degrees(reference.magnitude()), abs=1e-5)
+    yaw, pitch, roll = reference.as_euler("ZYX", degrees=True)  # intrinsic: R = Rz Ry Rx
+    if abs(pitch) < 89:  # away from gimbal lock the decomposition is unique (up to ±180°)
+        wrapped = (euler_zyx_deg(rot) - [roll, pitch, yaw] + 180) % 360 - 180
+        assert np.allclose(wrapped, 0, atol=1e-6)
+
+
+def test_euler_at_gimbal_lock_rebuilds_the_rotation():
+    rot = Rotation.from_euler("ZYX", [30, 90, 20], degrees=True).as_matrix()
+    roll, pitch, yaw = euler_zyx_deg(rot)
+    assert pitch == pytest.approx(90) and yaw == 0
+    rebuilt = Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True).as_matrix()
+    assert np.allclose(rebuilt, rot, atol=1e-9)

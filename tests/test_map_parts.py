@@ -119,6 +119,16 @@ def test_submap_motion_thresholds():
                 for a in (49, 51))  # fmt: skip
     assert not exceeds_motion(eye, pose_matrix([0, 0, 0], q49), cfg)
     assert exceeds_motion(eye, pose_matrix([0, 0, 0], q51), cfg)
+    # 55° about (1, 1, 0)/√2: roll, pitch, yaw are all below 50° (LoopSplat keeps the submap),
+    # the rotation angle is not
+    axis = np.array([1.0, 1.0, 0.0]) / np.sqrt(2)
+    diagonal = pose_matrix([0, 0, 0], np.append(axis * np.sin(np.radians(27.5)),
+                                                np.cos(np.radians(27.5))))  # fmt: skip
+    assert cfg.rotation_measure == "angle" and exceeds_motion(eye, diagonal, cfg)
+    assert not exceeds_motion(eye, diagonal, SubmapConfig(rotation_measure="euler"))
+    # relative to the submap's first frame, not to the world
+    first = pose_matrix([1, 2, 3], q49)
+    assert not exceeds_motion(first, first @ pose_matrix([0.1, 0, 0], q49), cfg)
 
 
 def test_ate_closed_forms():

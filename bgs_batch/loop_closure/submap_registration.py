@@ -24,7 +24,7 @@ import torch
 from bgs_batch.config import Config
 from bgs_batch.frames import block_mean, downsample
 from bgs_batch.gaussian_map import GaussianMap
-from bgs_batch.geometry import kd_tree
+from bgs_batch.geometry import kd_tree, rotation_angle_deg
 from bgs_batch.loop_closure.icp import IcpResult, point_to_plane, subsample
 from bgs_batch.losses import predictive_variance
 from bgs_batch.mapping import Keyframe
@@ -59,9 +59,8 @@ class Registration:
 
 def relative_motion(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """Distance (m) and angle (deg) between two camera poses."""
-    rel = np.linalg.inv(a) @ b
-    angle = np.degrees(np.arccos(np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1.0, 1.0)))
-    return float(np.linalg.norm(a[:3, 3] - b[:3, 3])), float(angle)
+    angle = rotation_angle_deg((np.linalg.inv(a) @ b)[:3, :3])
+    return float(np.linalg.norm(a[:3, 3] - b[:3, 3])), angle
 
 
 def fuse(transforms: list[np.ndarray], weights: list[float]) -> np.ndarray:
