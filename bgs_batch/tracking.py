@@ -18,7 +18,7 @@ from bgs_batch.config import Config
 from bgs_batch.frames import Level, block_mean, downsample
 from bgs_batch.gaussian_map import GaussianMap
 from bgs_batch.losses import predictive_variance, surprise_scores, tracking_loss
-from bgs_batch.render import Gaussians, RasterOutput, render, se3_exp
+from bgs_batch.render import Gaussians, RasterOutput, render, se3_exp, shape_matrices
 
 Variances = tuple[torch.Tensor, torch.Tensor]  # sensor colour [H,W,1], sensor depth [H,W,1]
 Images = tuple[torch.Tensor, ...]  # colour, depth, Σ_C, Σ_D of one render
@@ -83,6 +83,7 @@ class Tracker:
         gaussians = gmap.gaussians()
         for p in gmap.params.values():
             p.requires_grad_(False)
+        shapes = shape_matrices(gaussians.log_scales, gaussians.quats)  # the map stays fixed
         try:
             w2c, loss, iterations = w2c_init.to(torch.float64), float("inf"), 0
             for depth, ((factor, level), budget) in enumerate(
@@ -90,12 +91,12 @@ class Tracker:
             ):
                 variances = self._sensor_at(sensor_color, sensor_depth, factor)
                 lr_scale = self.cfg.tracking.level_lr_factor**depth
-                w2c, loss, used, best = self._optimise(gaussians, level, variances, w2c, budget,
-                                                       lr_scale)  # fmt: skip
+                w2c, loss, used, best = self._optimise(gaussians, shapes, level, variances, w2c,
+                                                       budget, lr_scale)  # fmt: skip
                 iterations += used
             if best is None:  # no finite loss at this level (or no iterations): render the pose
                 with torch.no_grad():
-                    out, var_c, var_d = self._render(gaussians, level, variances, w2c)
+                    out, var_c, var_d = self._render(gaussians, shapes, level, variances, w2c)
                 best = (out.color, out.depth, var_c, var_d)
             color, depth_image, var_c, var_d = best  # the finest level's render at its best pose
             scores = surprise_scores(color, depth_image, level.rgb, level.depth, var_c, var_d)
@@ -108,11 +109,13 @@ class Tracker:
         rel = factor // self.cfg.mapping.downscale
         return block_mean(color, rel).detach(), block_mean(depth, rel).detach()
 
-    def _render(self, gaussians: Gaussians, level: Level, variances: Variances, w2c: torch.Tensor
+    def _render(self, gaussians: Gaussians, shapes: torch.Tensor, level: Level,
+                variances: Variances, w2c: torch.Tensor
                 ) -> tuple[RasterOutput, torch.Tensor, torch.Tensor]:  # fmt: skip
-        """Render at `w2c` and the total predictive variances (Eq. 10, 11)."""
+        """Render at `w2c` and the total predictive variances (Eq. 10, 11); `shapes` are the
+        fixed map's shape matrices (`shape_matrices`)."""
         u = self.cfg.uncertainty
-        out = render(gaussians, w2c.float(), level.camera, full_grad=u.full_grad)
+        out = render(gaussians, w2c.float(), level.camera, full_grad=u.full_grad, shapes=shapes)
         var_c = predictive_variance(out.var_color, variances[0], out.alpha, u)
         var_d = predictive_variance(out.var_depth, variances[1], out.alpha, u)
         return out, var_c, var_d
@@ -120,6 +123,7 @@ class Tracker:
     def _optimise(
         self,
         gaussians: Gaussians,
+        shapes: torch.Tensor,
         level: Level,
         variances: Variances,
         w2c_start: torch.Tensor,
@@ -140,7 +144,7 @@ class Tracker:
         best_images: Images | None = None
         for used in range(1, budget + 1):  # noqa: B007 - the count is returned
             w2c = se3_exp(torch.cat([rho, phi])) @ w2c_start
-            out, var_c, var_d = self._render(gaussians, level, variances, w2c)
+            out, var_c, var_d = self._render(gaussians, shapes, level, variances, w2c)
             loss = tracking_loss(out.color, out.depth, out.alpha, level.rgb, level.depth,
                                  var_c, var_d, t)  # fmt: skip
             value = float(loss.detach())

@@ -7,10 +7,19 @@ import numba
 import pytest
 import torch
 
-from bgs_batch.render import Camera, Gaussians, project, rasterize, render, se3_exp
+from bgs_batch.render import (
+    Camera,
+    Gaussians,
+    project,
+    rasterize,
+    render,
+    se3_exp,
+    shape_matrices,
+)
 from bgs_batch.render import _numba_project as npj
 from bgs_batch.render import _numba_raster as nr
 from bgs_batch.render.constants import T_MIN
+from bgs_batch.render.reference import quat_to_rotmat
 from bgs_batch.render.testing import (
     max_rel_error,
     random_gaussians,
@@ -116,14 +125,30 @@ def test_pose_only_gradient_equals_full_path(dtype, full_grad):
     """Tracking (no Gaussian tensor requires grad) skips the appearance gradients; the pose
     gradient must be bitwise the one of the full path."""
     g = Gaussians(*(t.to(dtype) for t in vars(random_gaussians(200, seed=8)).values()))
-    pose = []
-    for gaussians_grad in (True, False):
+    pose, images = [], []
+    for gaussians_grad, precomputed in ((True, False), (False, False), (False, True)):
         params = [t.clone().requires_grad_(gaussians_grad) for t in vars(g).values()]
+        shapes = shape_matrices(g.log_scales, g.quats) if precomputed else None
         xi = torch.zeros(6, dtype=dtype, requires_grad=True)
-        out = render(Gaussians(*params), se3_exp(xi), CAMERA, full_grad=full_grad)
+        out = render(Gaussians(*params), se3_exp(xi), CAMERA, full_grad=full_grad,
+                     shapes=shapes)  # fmt: skip
         pose.append(random_vjp(out, [xi], seed=2)[0])
+        images.append(out)
     assert pose[0].abs().min() > 0
-    assert torch.equal(pose[0], pose[1])
+    assert torch.equal(pose[0], pose[1]) and torch.equal(pose[0], pose[2])
+    for a, b in zip(images[0], images[2], strict=True):  # precomputed shapes: the same render
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_shape_matrices_closed_form(dtype):
+    g = random_gaussians(300, seed=4)
+    shapes = shape_matrices(g.log_scales.to(dtype), g.quats.to(dtype))
+    oracle = quat_to_rotmat(g.quats) * torch.exp(g.log_scales)[:, None, :]  # R·diag(e^s)
+    assert shapes.dtype == dtype and max_rel_error(shapes, oracle) <= TOL[dtype]
+    with pytest.raises(ValueError, match="shapes must be"):
+        project(g.means, g.log_scales, g.quats, g.opacity_logits, torch.eye(4, dtype=g.means.dtype),
+                CAMERA, shapes=shapes[:-1])  # fmt: skip
 
 
 def test_gradcheck_rasterize():

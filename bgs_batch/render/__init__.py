@@ -7,7 +7,7 @@ and :func:`rasterize` (screen Gaussians → colour, depth, alpha, ``V_C``, ``V_D
 """
 
 from .camera import Camera, se3_exp
-from .project import Projected, project
+from .project import Projected, project, shape_matrices
 from .rasterize import RasterOutput, rasterize
 from .render import Gaussians, render
 
@@ -20,4 +20,5 @@ __all__ = [
     "rasterize",
     "render",
     "se3_exp",
+    "shape_matrices",
 ]

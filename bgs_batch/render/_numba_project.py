@@ -33,9 +33,13 @@ GAUSS_BLOCK = 1024
 sharing of output rows, dealing them balances maps whose visible part is not uniform in index."""
 
 
-def project_params(camera: Camera, dtype: np.dtype) -> np.ndarray:
-    """The typed parameter array of the projection kernels for ``camera``."""
+def project_params(camera: Camera | None, dtype: np.dtype) -> np.ndarray:
+    """The typed parameter array of the projection kernels for ``camera`` (None: only the
+    numeric constants, enough for :func:`shape_matrices`)."""
     values = [0.0] * 14
+    values[P_HALF], values[P_ONE], values[P_TWO] = 0.5, 1.0, 2.0
+    if camera is None:
+        return np.array(values, dtype=dtype)
     values[P_FX], values[P_FY], values[P_CX], values[P_CY] = (
         camera.fx, camera.fy, camera.cx, camera.cy,
     )  # fmt: skip
@@ -43,13 +47,13 @@ def project_params(camera: Camera, dtype: np.dtype) -> np.ndarray:
     values[P_CENTRE_X], values[P_CENTRE_Y] = (camera.width - 1) / 2, (camera.height - 1) / 2
     values[P_GUARD_X] = FRUSTUM_MARGIN * camera.width / 2
     values[P_GUARD_Y] = FRUSTUM_MARGIN * camera.height / 2
-    values[P_HALF], values[P_ONE], values[P_TWO] = 0.5, 1.0, 2.0
     return np.array(values, dtype=dtype)
 
 
 @numba.njit(cache=True)
 def _views(work):
-    """Scratch views ``rot`` [3,3], ``m`` [3,3], ``t2`` [2,3], ``k`` [2,3] of :func:`_geometry`."""
+    """Scratch views ``rot`` [3,3], ``m`` [3,3], ``t2`` [2,3], ``k`` [2,3] of :func:`_shape` and
+    :func:`_view`."""
     return work[0:3], work[3:6], work[6:8], work[8:10]
 
 
@@ -63,10 +67,10 @@ def _camera_point(mean, viewmat):
 
 
 @numba.njit(cache=True)
-def _geometry(x, y, z, log_scale, quat, viewmat, params, rot, m, t2, k):
-    """Covariance terms of one Gaussian centred at camera point ``(x, y, z)``: fills
-    ``rot`` = R_q(q̂), ``m`` = R_q·diag(e^s), ``t2`` = J·R and ``k`` = J·R·M."""
-    zero, one, two = params[P_ZERO], params[P_ONE], params[P_TWO]
+def _shape(log_scale, quat, params, rot, m):
+    """The view-independent part of one Gaussian's covariance: fills ``rot`` = R_q(q̂) and
+    ``m`` = R_q·diag(e^s)."""
+    one, two = params[P_ONE], params[P_TWO]
     norm = math.sqrt(quat[0] ** 2 + quat[1] ** 2 + quat[2] ** 2 + quat[3] ** 2)
     w, qx, qy, qz = quat[0] / norm, quat[1] / norm, quat[2] / norm, quat[3] / norm
     rot[0, 0] = one - two * (qy * qy + qz * qz)
@@ -82,6 +86,13 @@ def _geometry(x, y, z, log_scale, quat, viewmat, params, rot, m, t2, k):
         scale = math.exp(log_scale[j])
         for i in range(3):
             m[i, j] = rot[i, j] * scale
+
+
+@numba.njit(cache=True)
+def _view(x, y, z, viewmat, params, m, t2, k):
+    """The view-dependent part for a Gaussian centred at camera point ``(x, y, z)``: fills
+    ``t2`` = J·R (perspective Jacobian J, camera rotation R) and ``k`` = J·R·M."""
+    zero = params[P_ZERO]
     fx, fy = params[P_FX], params[P_FY]
     j00, j02 = fx / z, -fx * x / (z * z)
     j11, j12 = fy / z, -fy * y / (z * z)
@@ -96,11 +107,26 @@ def _geometry(x, y, z, log_scale, quat, viewmat, params, rot, m, t2, k):
 
 
 @numba.njit(parallel=True, cache=True)
+def shape_matrices(log_scales, quats, params, n_chunks, out):
+    """``out[i]`` = R_q(q̂_i)·diag(e^{s_i}) for every Gaussian (a fixed map's :func:`_shape`)."""
+    n = log_scales.shape[0]
+    scratch = np.empty((n_chunks, SCRATCH_ROWS, 3), log_scales.dtype)
+    for chunk in numba.prange(n_chunks):
+        rot = scratch[chunk][0:3]
+        for block in range(chunk, (n + GAUSS_BLOCK - 1) // GAUSS_BLOCK, n_chunks):
+            for i in range(block * GAUSS_BLOCK, min((block + 1) * GAUSS_BLOCK, n)):
+                _shape(log_scales[i], quats[i], params, rot, out[i])
+
+
+@numba.njit(parallel=True, cache=True)
 def project_fwd(
-    means, log_scales, quats, opacity_logits, viewmat, params, width, height,
-    n_chunks, out_means2d, out_conics, out_depths, out_visible,
+    means, log_scales, quats, opacity_logits, viewmat, params, width, height, shapes,
+    use_shapes, n_chunks, out_means2d, out_conics, out_depths, out_visible,
 ):  # fmt: skip
-    """Project all Gaussians; ``out_visible`` applies near, guard-band and screen-bounds culling."""
+    """Project all Gaussians; ``out_visible`` applies near, guard-band and screen-bounds culling.
+
+    With ``use_shapes``, M = R_q·diag(e^s) is read from ``shapes`` [N,3,3] (:func:`shape_matrices`)
+    instead of being computed from ``log_scales`` and ``quats``: the same numbers, once per map."""
     n = means.shape[0]
     low, one = params[P_LOWPASS], params[P_ONE]
     scratch = np.empty((n_chunks, SCRATCH_ROWS, 3), means.dtype)
@@ -119,7 +145,10 @@ def project_fwd(
                 if (abs(u - params[P_CENTRE_X]) > params[P_GUARD_X]
                         or abs(v - params[P_CENTRE_Y]) > params[P_GUARD_Y]):  # fmt: skip
                     continue
-                _geometry(x, y, z, log_scales[i], quats[i], viewmat, params, rot, m, t2, k)
+                shape = shapes[i] if use_shapes else m
+                if not use_shapes:
+                    _shape(log_scales[i], quats[i], params, rot, m)
+                _view(x, y, z, viewmat, params, shape, t2, k)
                 sxx = k[0, 0] ** 2 + k[0, 1] ** 2 + k[0, 2] ** 2 + low
                 sxy = k[0, 0] * k[1, 0] + k[0, 1] * k[1, 1] + k[0, 2] * k[1, 2]
                 syy = k[1, 0] ** 2 + k[1, 1] ** 2 + k[1, 2] ** 2 + low
@@ -134,13 +163,14 @@ def project_fwd(
 @numba.njit(parallel=True, cache=True)
 def project_bwd(
     means, log_scales, quats, viewmat, params, ids, conics,
-    grad_means2d, grad_conics, grad_depths, want_gaussians, n_chunks,
+    grad_means2d, grad_conics, grad_depths, want_gaussians, shapes, use_shapes, n_chunks,
     out_means, out_log_scales, out_quats, out_pose,
 ):  # fmt: skip
     """VJP of :func:`project_fwd` for the visible Gaussians ``ids``.
 
     Writes ∂L/∂means, ∂L/∂log_scales, ∂L/∂quats at rows ``ids`` when ``want_gaussians`` (rows of
     the outputs are not cleared here), and always ``out_pose[12]`` = (∂L/∂R, ∂L/∂t).
+    ``use_shapes`` (pose only, without ``want_gaussians``) reads M from ``shapes``.
     """
     n = ids.shape[0]
     zero, half, two = params[P_ZERO], params[P_HALF], params[P_TWO]
@@ -156,7 +186,11 @@ def project_bwd(
                 g = ids[i]
                 mean, quat = means[g], quats[g]
                 x, y, z = _camera_point(mean, viewmat)
-                _geometry(x, y, z, log_scales[g], quat, viewmat, params, rot, m, t2, k)
+                if use_shapes:
+                    m[:, :] = shapes[g]
+                else:
+                    _shape(log_scales[g], quat, params, rot, m)
+                _view(x, y, z, viewmat, params, m, t2, k)
                 # Conic (a, b, c) = Σ₂⁻¹ = P: ∂L/∂Σ₂ = −P·G·P with G = [[ga, gb/2], [gb/2, gc]].
                 a, b, c = conics[i, 0], conics[i, 1], conics[i, 2]
                 ga, gb, gc = grad_conics[i, 0], half * grad_conics[i, 1], grad_conics[i, 2]
@@ -212,7 +246,8 @@ def project_bwd(
                 _quat_vjp(quat, dm, two, out_quats[g])
     for j in range(N_POSE):  # scalar loops: an array expression here would become a parfor
         out_pose[j] = zero
-        for i in range(n):
+    for i in range(n):  # row by row (contiguous); each entry still sums i = 0, 1, ... in order
+        for j in range(N_POSE):
             out_pose[j] += contrib[i, j]
 
 

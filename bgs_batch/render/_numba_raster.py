@@ -330,8 +330,8 @@ def raster_bwd(
     ``slots[k]`` receives the gradient of intersection ``k`` with respect to
     (mean x, mean y, conic a, b, c, opacity, features ×4, v). ``full_grad`` adds the dependence
     of ``T_i²`` in the variances on the alphas in front of Gaussian i (dropped by the authors).
-    Without ``want_appearance`` (pose-only tracking) the colour entries are left at zero and
-    the opacity and ``v`` entries are computed but not needed.
+    Without ``want_appearance`` (pose-only tracking) the colour, opacity and ``v`` entries are
+    left at zero: only the geometry entries and the depth feature reach the pose.
 
     Like the forward, each Gaussian is processed over the tile-wide rows of its bounding box by
     branch-free loops over lanes (masks as selects; masked lanes contribute exact zeros); each
@@ -450,12 +450,15 @@ def raster_bwd(
                     r_sum[j] += q_var[j] * moments[j]
                 for j in range(p0, p1):
                     d_sigmas[j] = -d_alphas[j] * o * gauss[j]
-                for j in range(p0, p1):
-                    terms[j] = d_alphas[j] * gauss[j]
-                slots[k, S_OPACITY] = lane_sum(terms, p0, p1, partial)
-                for j in range(p0, p1):
-                    terms[j] = squares[j] * q_var[j]
-                slots[k, S_VAR] = lane_sum(terms, p0, p1, partial)
+                s_opacity = s_var = zero
+                if want_appearance:
+                    for j in range(p0, p1):
+                        terms[j] = d_alphas[j] * gauss[j]
+                    s_opacity = lane_sum(terms, p0, p1, partial)
+                    for j in range(p0, p1):
+                        terms[j] = squares[j] * q_var[j]
+                    s_var = lane_sum(terms, p0, p1, partial)
+                slots[k, S_OPACITY], slots[k, S_VAR] = s_opacity, s_var
                 for j in range(p0, p1):
                     terms[j] = -d_sigmas[j] * (a * (lane_x[j] - mx) + b * (lane_y[j] - my))
                 slots[k, S_MEAN] = lane_sum(terms, p0, p1, partial)

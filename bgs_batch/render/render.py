@@ -42,18 +42,19 @@ def render(
     camera: Camera,
     *,
     full_grad: bool = True,
+    shapes: torch.Tensor | None = None,
     backend: str = DEFAULT_BACKEND,
 ) -> RasterOutput:
     """Render colour, depth, alpha and the variances ``V_C``, ``V_D`` (paper Eq. 3, 12, 13).
 
     Gradients reach every Gaussian parameter and ``viewmat`` (world-to-camera); for tracking,
-    pass ``viewmat = se3_exp(ξ) @ viewmat₀`` and differentiate with respect to ``ξ``.
+    pass ``viewmat = se3_exp(ξ) @ viewmat₀`` and differentiate with respect to ``ξ``, and
+    ``shapes`` = :func:`.project.shape_matrices` of the fixed map to skip recomputing them.
     See :func:`.rasterize.rasterize` for ``full_grad`` and ``backend``.
     """
     g = gaussians
-    proj = project(
-        g.means, g.log_scales, g.quats, g.opacity_logits, viewmat, camera, backend=backend
-    )
+    proj = project(g.means, g.log_scales, g.quats, g.opacity_logits, viewmat, camera,
+                   shapes=shapes, backend=backend)  # fmt: skip
     ids = proj.ids
     return rasterize(
         proj.means2d,
