@@ -93,6 +93,10 @@ class Slam:
         self.active_keyframes: list[Keyframe] = []
         self.submap_first_frame = 0
         self.loop_closer = LoopCloser(self.cfg)  # issue P8
+        # the previous pose moved with an injected drift: the next constant-velocity step's
+        # reference, so that the drift moves the new submap rigidly instead of adding a jump
+        # to the velocity (None: the previous pose itself)
+        self.drifted_prev: np.ndarray | None = None
 
     def prepare(self, frame: Frame) -> tuple[Level, Level]:
         """The frame at input resolution (cropped, depth clipped) and at mapping resolution."""
@@ -120,8 +124,7 @@ class Slam:
             c2w = np.eye(4)  # the first camera defines the world frame
         else:
             start = time.perf_counter()
-            prev2 = torch.from_numpy(self.poses[-2]) if len(self.poses) > 1 else None
-            init = constant_velocity(torch.from_numpy(self.poses[-1]), prev2)
+            init = self._initial_pose()
             result = self.tracker.track(self.gmap, full, sensor_c, sensor_d,
                                         torch.linalg.inv(init))  # fmt: skip
             # C order always: LAPACK returns column-major, and a checkpoint restores row-major;
@@ -161,6 +164,15 @@ class Slam:
                      stage_s=self._stages_since(totals_before))  # fmt: skip
         return event
 
+    def _initial_pose(self) -> torch.Tensor:
+        """The next frame's constant-velocity start (after an injected drift, from the drifted
+        reference: the drift moved the new submap, not the camera's velocity)."""
+        prev2 = self.poses[-2] if len(self.poses) > 1 else None
+        if self.drifted_prev is not None:
+            prev2, self.drifted_prev = self.drifted_prev, None
+        return constant_velocity(torch.from_numpy(self.poses[-1]),
+                                 None if prev2 is None else torch.from_numpy(prev2))  # fmt: skip
+
     def _stages_since(self, totals_before: dict[str, float]) -> dict[str, float]:
         """Seconds per stage since the run's totals were `totals_before` (the stages that ran)."""
         return {stage: total - totals_before[stage]
@@ -184,7 +196,10 @@ class Slam:
             event["loop_closure"] = report
         lc = self.cfg.loop_closure
         if event is not None:  # a switch (not the end of the run): the drift lever
-            self.poses[-1] = inject_drift(self.poses[-1], lc.inject_drift_deg, lc.inject_drift_m)
+            before = self.poses[-1]
+            self.poses[-1] = inject_drift(before, lc.inject_drift_deg, lc.inject_drift_m)
+            if self.poses[-1] is not before and len(self.poses) > 1:
+                self.drifted_prev = self.poses[-1] @ np.linalg.inv(before) @ self.poses[-2]
         self.timings.add("loop_closure", time.perf_counter() - start)
         return self.poses[-1]
 
@@ -223,6 +238,8 @@ class Slam:
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "loop_closure": self.loop_closer.state_dict(),  # issue P8
+            "drifted_prev": (None if self.drifted_prev is None
+                             else torch.from_numpy(self.drifted_prev)),  # fmt: skip
         }
 
     def load_state_dict(self, state: dict[str, Any], read_frame: Callable[[int], Frame]) -> None:
@@ -245,6 +262,8 @@ class Slam:
         torch.set_rng_state(state["torch_rng"])
         if "loop_closure" in state:  # issue P8 (absent in older checkpoints)
             self.loop_closer.load_state_dict(state["loop_closure"])
+        drifted = state.get("drifted_prev")
+        self.drifted_prev = None if drifted is None else np.ascontiguousarray(drifted.numpy())
 
     def finish(self) -> None:
         """Write the last submap too (LoopSplat drops it; its frames deserve a map)."""

@@ -176,6 +176,41 @@ def test_drift_lever_turns_about_the_camera_and_shifts_along_its_x_axis():
     assert np.isclose(np.degrees(np.arccos((np.trace(rel) - 1) / 2)), 2.0)
 
 
+def test_drift_moves_the_new_submap_rigidly_not_the_velocity(tmp_path):
+    """The drifted first pose of a new submap must not enter the next constant-velocity step as
+    a jump: the step after the switch starts at the drifted pose moved by the tracked motion
+    (before the fix it also carried the 2° and 2 cm once more, which lost tracking on the
+    synthetic loop at the paper's sensor rate). The reference survives a checkpoint."""
+    from bgs_batch.slam import Slam
+    from bgs_batch.tracking import constant_velocity
+
+    cfg = load_config("cpu", ["loop_closure.enabled=false", "loop_closure.inject_drift_deg=2.0",
+                              "loop_closure.inject_drift_m=0.02"])  # fmt: skip
+    slam = Slam(cfg, np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]]), tmp_path)
+    before = rigid([0.1, 0.0, 0.0, 0.02, 0.05, 0.0])
+    current = rigid([0.1, 0.1, 0.0, 0.03, 0.06, 0.0])
+    slam.poses = [before, current]
+    drifted = slam._close_loops([], event={})
+    drift = drifted @ np.linalg.inv(current)
+    assert not np.allclose(drift, np.eye(4))
+    # the previous pose moved with the new submap: the relative motion is the tracked one
+    np.testing.assert_allclose(np.linalg.inv(slam.drifted_prev) @ drifted,
+                               np.linalg.inv(before) @ current, atol=1e-12)  # fmt: skip
+    reference = slam.drifted_prev
+    undrifted = constant_velocity(torch.from_numpy(current), torch.from_numpy(before))
+    np.testing.assert_allclose(slam._initial_pose().numpy(), drift @ undrifted.numpy(),
+                               atol=1e-12)  # fmt: skip
+    assert slam.drifted_prev is None  # used once
+    slam.drifted_prev = reference
+
+    restored = Slam(cfg, slam.intrinsics, tmp_path)
+    restored.load_state_dict(slam.state_dict(), read_frame=lambda i: None)
+    assert np.array_equal(restored.drifted_prev, slam.drifted_prev)
+    slam.drifted_prev = None
+    restored.load_state_dict(slam.state_dict(), read_frame=lambda i: None)
+    assert restored.drifted_prev is None
+
+
 # ----------------------------------------------------------------------- recognition
 
 
