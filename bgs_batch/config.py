@@ -239,16 +239,12 @@ PRESETS: dict[str, dict[str, Any]] = {
         "mapping.new_submap_iterations": 60,
         "mapping.downscale": 2,
         "uncertainty.sensor_downscale": 4,  # the network at 80×60: ~90 → ~20 ms per mapping step
-        # 10× the paper's rate: with 40 instead of 100 mapping iterations and fewer keyframes
-        # the network gets far fewer Adam steps. At the paper's 1e-4 fr1/rpy tracked better
-        # (240 frames: ATE 3.08 -> 2.80 cm), but the network then barely leaves its start on
-        # short sequences, and loop closure on the drifting synthetic loop no longer cut the
-        # drift (tests/test_loop_closure_slam.py: 40 cm against 3 cm at 1e-3)
-        "uncertainty.sensor_lr": 1e-3,
         # start the network at the map floor's scale, not at softplus(0) ≈ 0.69: from 0.69 the
         # NLL drives every output down so hard that the head saturates at the 1e-4 floor and
         # never recovers (fr1/rpy 240 frames: σ²_sensor = 1e-4 ± 2e-7 on every pixel; 60
-        # frames: keyframes 62 % -> 27 %, PSNR 20.0 -> 21.8 dB)
+        # frames: keyframes 62 % -> 27 %, PSNR 20.0 -> 21.8 dB). From there the paper's rate
+        # (1e-4, the default) suffices; the 10× rate this preset used to start from 0.69 is
+        # not needed (240 frames: ATE 3.08 -> 2.80 cm, 55 -> 58 keyframes)
         "uncertainty.sensor_initial": 1e-3,
         # a batch run is read at the end: also close loops from the last submap (LoopSplat's
         # lc.final, off in its configs; fr1/rpy 240 frames with sensor_lr 1e-4: 2.80 -> 2.61 cm)
