@@ -11,9 +11,8 @@ keyframes); the keyframe check on the first M frames, a `cpu` run with surprise 
 against one mapping every frame (mapping every frame is ~3x slower; both runs see the same M
 frames and differ only in `keyframes.mode`, so loop closures that the full run finds later,
 and that move its early submaps, do not enter the ratio); bgs `paper` preset on the first P
-frames. Targets (issue P3): ATE ≤ 2.5 cm,
-≥ 0.5 fps, keyframes ≤ 35 % with ATE ≤ 1.15× every-frame, peak RSS ≤ 4 GiB.
-Prints a table and one SUMMARY line.
+frames. Targets (issue P3): ATE ≤ 2.5 cm, ≥ 0.5 fps, keyframes ≤ 35 % with ATE ≤ 1.15×
+every-frame, peak RSS ≤ 4 GiB. Prints a table and one SUMMARY line.
 """
 
 from __future__ import annotations

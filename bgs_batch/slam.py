@@ -165,8 +165,9 @@ class Slam:
         return event
 
     def _initial_pose(self) -> torch.Tensor:
-        """The next frame's constant-velocity start (after an injected drift, from the drifted
-        reference: the drift moved the new submap, not the camera's velocity)."""
+        """The next frame's constant-velocity start. After an injected drift it starts from the
+        drifted reference (the drift moved the new submap, not the camera's velocity) and
+        consumes it: call once per tracked frame."""
         prev2 = self.poses[-2] if len(self.poses) > 1 else None
         if self.drifted_prev is not None:
             prev2, self.drifted_prev = self.drifted_prev, None
