@@ -345,6 +345,9 @@ def raster_bwd(
     sigma_max, fast_exp = consts[K_SIGMA_MAX], feats.itemsize == 4
     half, one, two, zero = consts[K_HALF], consts[K_ONE], consts[K_TWO], consts[K_ZERO]
     r_weight = two if full_grad else zero  # ∂T_i²/∂α_j enters ∂L/∂α_j only in the full gradient
+    # q = Σ_ch ∂L/∂V (f − F)² feeds ∂L/∂v and the full gradient's r_sum only: pose-only tracking
+    # with the authors' gradient skips it (r_sum then stays 0)
+    need_q = want_appearance or full_grad
     for chunk in numba.prange(n_chunks):
         lane_x = np.empty(TILE_PIXELS, feats.dtype)
         lane_y = np.empty(TILE_PIXELS, feats.dtype)
@@ -427,10 +430,14 @@ def raster_bwd(
                     g_dot_f[j] = zero
                 for ch in range(N_FEAT):  # a runtime bound: no unrolling, less JIT
                     f = feats[g, ch]
-                    for j in range(p0, p1):
-                        d = f - fin[ch, j]
-                        q_var[j] += g_v[ch, j] * d * d
-                        g_dot_f[j] += g_fin[ch, j] * f
+                    if need_q:
+                        for j in range(p0, p1):
+                            d = f - fin[ch, j]
+                            q_var[j] += g_v[ch, j] * d * d
+                            g_dot_f[j] += g_fin[ch, j] * f
+                    else:
+                        for j in range(p0, p1):
+                            g_dot_f[j] += g_fin[ch, j] * f
                     s_f = zero
                     if want_appearance or ch == N_FEAT - 1:
                         for j in range(p0, p1):
@@ -445,9 +452,13 @@ def raster_bwd(
                     ) * inverse[j]
                     blended = (alphas[j] > zero) & (o * gauss[j] < alpha_max)
                     d_alphas[j] = d_alpha if blended else zero
-                for j in range(p0, p1):
-                    g_behind[j] += weights[j] * g_dot_f[j]
-                    r_sum[j] += q_var[j] * moments[j]
+                if full_grad:
+                    for j in range(p0, p1):
+                        g_behind[j] += weights[j] * g_dot_f[j]
+                        r_sum[j] += q_var[j] * moments[j]
+                else:
+                    for j in range(p0, p1):
+                        g_behind[j] += weights[j] * g_dot_f[j]
                 for j in range(p0, p1):
                     d_sigmas[j] = -d_alphas[j] * o * gauss[j]
                 s_opacity = s_var = zero
