@@ -64,6 +64,13 @@ class TrackingConfig:
     # 8.3 against 3.1 cm on the synthetic loop (tests/test_loop_closure_slam.py): no preset
     # uses it
     level_lr_factor: float = 1.0
+    # LoopSplat's init_err_ratio: a frame whose loss at the initial pose exceeds this many times
+    # the median best loss of the frames tracked before (both at the coarsest level) gets twice
+    # the iterations on every level (fast motion; 0 disables). Off in both presets: the
+    # authors' code has it dead (bayesiangs_code.md §5), and in the cpu preset on fr1/rpy (240
+    # frames) LoopSplat's 5 never fires (2.61 cm, bit for bit) while 2 fires on submap starts
+    # and fast turns and loses (3.16 cm)
+    init_err_ratio: float = 0.0
 
 
 @dataclass

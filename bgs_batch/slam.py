@@ -131,7 +131,8 @@ class Slam:
             # the layout changes BLAS's summation order, so resuming would drift by an ulp
             c2w = np.ascontiguousarray(torch.linalg.inv(result.w2c).numpy())
             score_c, score_d = result.score_color, result.score_depth
-            event.update(track_loss=result.loss, track_iterations=result.iterations)
+            event.update(track_loss=result.loss, track_iterations=result.iterations,
+                         track_doubled=result.doubled)  # fmt: skip
             self.timings.add("tracking", time.perf_counter() - start)
         self.poses.append(c2w)
 
@@ -236,6 +237,7 @@ class Slam:
             "sensor": self.sensor.state_dict(),
             "sensor_opt": self.sensor_opt.state_dict(),
             "selector": self.selector.state_dict(),
+            "tracker": self.tracker.state_dict(),
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "loop_closure": self.loop_closer.state_dict(),  # issue P8
@@ -259,6 +261,8 @@ class Slam:
         self.sensor.load_state_dict(state["sensor"])
         self.sensor_opt.load_state_dict(state["sensor_opt"])
         self.selector.load_state_dict(state["selector"])
+        if "tracker" in state:  # absent in checkpoints older than init_err_ratio
+            self.tracker.load_state_dict(state["tracker"])
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         if "loop_closure" in state:  # issue P8 (absent in older checkpoints)

@@ -5,10 +5,14 @@ with ξ = (ρ, φ), optimised by Adam (amsgrad, LoopSplat's rates) on the uncert
 L1 loss. The map, and the sensor network's variance (computed once per frame), are fixed. CPU
 levers: a coarse-to-fine image pyramid and early stopping once the loss stops improving. The
 lowest-loss pose of the finest level is kept, with its predictive-surprise scores (Eq. 9).
+Like LoopSplat, a frame that starts far worse than the frames before it (fast motion) gets
+twice the iterations (``tracking.init_err_ratio``).
 """
 
 from __future__ import annotations
 
+import math
+import statistics
 from dataclasses import dataclass
 
 import torch
@@ -33,6 +37,7 @@ class TrackResult:
     iterations: int  # over all levels
     score_color: float
     score_depth: float
+    doubled: bool  # the initial loss exceeded `init_err_ratio` × the median: twice the budget
 
 
 def constant_velocity(c2w_prev: torch.Tensor, c2w_prev2: torch.Tensor | None) -> torch.Tensor:
@@ -47,6 +52,21 @@ class Tracker:
 
     def __init__(self, cfg: Config) -> None:
         self.cfg = cfg
+        # best coarsest-level loss of every frame tracked so far (init_err_ratio's median)
+        self.coarse_losses: list[float] = []
+
+    def state_dict(self) -> dict[str, list[float]]:
+        return {"coarse_losses": list(self.coarse_losses)}
+
+    def load_state_dict(self, state: dict[str, list[float]]) -> None:
+        self.coarse_losses = [float(x) for x in state["coarse_losses"]]
+
+    def _doubling_threshold(self) -> float:
+        """The initial loss above which a frame's budget doubles (inf: never)."""
+        ratio = self.cfg.tracking.init_err_ratio
+        if not ratio or not self.coarse_losses:
+            return float("inf")
+        return ratio * statistics.median(self.coarse_losses)
 
     def pyramid(self, frame: Level) -> list[tuple[int, Level]]:
         """(factor, level) from the coarsest level to the tracking resolution.
@@ -86,13 +106,21 @@ class Tracker:
         shapes = shape_matrices(gaussians.log_scales, gaussians.quats)  # the map stays fixed
         try:
             w2c, loss, iterations = w2c_init.to(torch.float64), float("inf"), 0
+            threshold, doubled = self._doubling_threshold(), False
             for depth, ((factor, level), budget) in enumerate(
                 zip(self.pyramid(frame), self.iteration_budget(), strict=True)
             ):
                 variances = self._sensor_at(sensor_color, sensor_depth, factor)
                 lr_scale = self.cfg.tracking.level_lr_factor**depth
-                w2c, loss, used, best = self._optimise(gaussians, shapes, level, variances, w2c,
-                                                       budget, lr_scale)  # fmt: skip
+                if depth == 0:
+                    w2c, loss, used, best, doubled = self._optimise(
+                        gaussians, shapes, level, variances, w2c, budget, lr_scale, threshold)
+                    if self.cfg.tracking.init_err_ratio and math.isfinite(loss):
+                        self.coarse_losses.append(loss)
+                else:
+                    w2c, loss, used, best, _ = self._optimise(
+                        gaussians, shapes, level, variances, w2c, budget * (1 + doubled),
+                        lr_scale)  # fmt: skip
                 iterations += used
             if best is None:  # no finite loss at this level (or no iterations): render the pose
                 with torch.no_grad():
@@ -103,7 +131,7 @@ class Tracker:
         finally:
             for p in gmap.params.values():
                 p.requires_grad_(True)
-        return TrackResult(w2c, loss, iterations, *scores)
+        return TrackResult(w2c, loss, iterations, *scores, doubled)
 
     def _sensor_at(self, color: torch.Tensor, depth: torch.Tensor, factor: int) -> Variances:
         rel = factor // self.cfg.mapping.downscale
@@ -129,10 +157,12 @@ class Tracker:
         w2c_start: torch.Tensor,
         budget: int,
         lr_scale: float = 1.0,
-    ) -> tuple[torch.Tensor, float, int, Images | None]:
+        double_above: float = float("inf"),
+    ) -> tuple[torch.Tensor, float, int, Images | None, bool]:
         """Adam on ξ at one pyramid level (rates × `lr_scale`); returns the lowest-loss pose,
-        its loss, the iterations used and the render there (colour, depth, Σ_C, Σ_D; None when
-        no iteration gave a finite loss), which the surprise scores reuse."""
+        its loss, the iterations used, the render there (colour, depth, Σ_C, Σ_D; None when
+        no iteration gave a finite loss), which the surprise scores reuse, and whether the
+        budget was doubled because the initial loss exceeded `double_above`."""
         t = self.cfg.tracking
         rho = torch.zeros(3, dtype=torch.float64, requires_grad=True)
         phi = torch.zeros(3, dtype=torch.float64, requires_grad=True)
@@ -140,14 +170,17 @@ class Tracker:
             [{"params": [rho], "lr": t.trans_lr * lr_scale},
              {"params": [phi], "lr": t.rot_lr * lr_scale}], amsgrad=True
         )  # fmt: skip
-        best_w2c, best, stale, used = w2c_start, float("inf"), 0, 0
+        best_w2c, best, stale, used, doubled = w2c_start, float("inf"), 0, 0, False
         best_images: Images | None = None
-        for used in range(1, budget + 1):  # noqa: B007 - the count is returned
+        while used < budget:
+            used += 1
             w2c = se3_exp(torch.cat([rho, phi])) @ w2c_start
             out, var_c, var_d = self._render(gaussians, shapes, level, variances, w2c)
             loss = tracking_loss(out.color, out.depth, out.alpha, level.rgb, level.depth,
                                  var_c, var_d, t)  # fmt: skip
             value = float(loss.detach())
+            if used == 1 and value > double_above:
+                budget, doubled = 2 * budget, True
             if value < best:
                 stale = 0 if best - value > t.early_stop_rel * abs(value) else stale + 1
                 best, best_w2c = value, w2c.detach()
@@ -159,4 +192,4 @@ class Tracker:
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-        return best_w2c, best, used, best_images
+        return best_w2c, best, used, best_images, doubled

@@ -70,3 +70,26 @@ def test_run_cli_rejects_bad_settings(store30, tmp_path):
     result = CliRunner().invoke(main, ["run", str(tmp_path / "none.h5"), "--job-dir",
                                        str(tmp_path / "j")])  # fmt: skip
     assert result.exit_code == 3 and "bgs convert" in result.output
+
+
+def test_init_err_ratio_doubles_the_budget_of_a_frame_that_starts_far_off(store30, tmp_path):
+    """LoopSplat's init_err_ratio: the budget doubles on every level when the initial loss
+    exceeds ratio × the median best coarse loss of earlier frames; the history resumes."""
+    from bgs_batch.slam import Slam
+    from bgs_batch.store import FrameStore
+
+    store = FrameStore(store30)
+    overrides = ["mapping.downscale=1", "tracking.downscale=1", "tracking.iterations=6",
+                 "tracking.coarse_fraction=0.5", "tracking.early_stop_patience=0"]  # fmt: skip
+    for ratio, history, expect in ((0.0, [], False), (5.0, [1e9], False), (5.0, [1e-9], True)):
+        cfg = load_config("cpu", [*overrides, f"tracking.init_err_ratio={ratio}"])
+        slam = Slam(cfg, store.intrinsics, tmp_path / f"submaps{ratio}{expect}")
+        slam.process(store[0])
+        slam.tracker.coarse_losses = list(history)
+        event = slam.process(store[1])
+        assert event["track_doubled"] is expect
+        assert event["track_iterations"] == (12 if expect else 6)  # coarse 3 + fine 3, doubled
+        assert len(slam.tracker.coarse_losses) == len(history) + (ratio > 0)
+        restored = Slam(cfg, store.intrinsics, tmp_path / "restored")
+        restored.load_state_dict(slam.state_dict(), store.__getitem__)
+        assert restored.tracker.coarse_losses == slam.tracker.coarse_losses
