@@ -112,15 +112,13 @@ class Tracker:
             ):
                 variances = self._sensor_at(sensor_color, sensor_depth, factor)
                 lr_scale = self.cfg.tracking.level_lr_factor**depth
-                if depth == 0:
-                    w2c, loss, used, best, doubled = self._optimise(
-                        gaussians, shapes, level, variances, w2c, budget, lr_scale, threshold)
-                    if self.cfg.tracking.init_err_ratio and math.isfinite(loss):
-                        self.coarse_losses.append(loss)
-                else:
-                    w2c, loss, used, best, _ = self._optimise(
-                        gaussians, shapes, level, variances, w2c, budget * (1 + doubled),
-                        lr_scale)  # fmt: skip
+                # the coarsest level tests its initial loss; finer levels inherit the doubling
+                w2c, loss, used, best, hard = self._optimise(
+                    gaussians, shapes, level, variances, w2c, budget * (1 + doubled), lr_scale,
+                    threshold if depth == 0 else math.inf)  # fmt: skip
+                doubled = doubled or hard
+                if depth == 0 and self.cfg.tracking.init_err_ratio and math.isfinite(loss):
+                    self.coarse_losses.append(loss)
                 iterations += used
             if best is None:  # no finite loss at this level (or no iterations): render the pose
                 with torch.no_grad():
