@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from bgs_batch.render import Camera
 
@@ -68,3 +69,14 @@ def block_mean(image: torch.Tensor, factor: int) -> torch.Tensor:
         return image
     h, w, c = image.shape[0] // factor, image.shape[1] // factor, image.shape[2]
     return image[: h * factor, : w * factor].reshape(h, factor, w, factor, c).mean((1, 3))
+
+
+def repeat_blocks(image: torch.Tensor, factor: int, height: int, width: int) -> torch.Tensor:
+    """Each pixel of [h,w,C] repeated into a `factor`×`factor` block, cut or edge-padded to
+    `height`×`width`: the way back from `block_mean` to the full image."""
+    big = image.repeat_interleave(factor, 0).repeat_interleave(factor, 1)[:height, :width]
+    pad_h, pad_w = height - big.shape[0], width - big.shape[1]
+    if pad_h or pad_w:
+        big = F.pad(big.permute(2, 0, 1)[None], (0, pad_w, 0, pad_h), mode="replicate")
+        big = big[0].permute(1, 2, 0)
+    return big

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from bgs_batch.frames import block_mean
+from bgs_batch.frames import block_mean, repeat_blocks
 
 CONV_LAYERS = 4
 PIXEL_LAYERS = 4  # the last one maps to the 2 outputs
@@ -62,14 +62,5 @@ class SensorNoiseNet(nn.Module):
             return self(rgb, depth)
         h, w = rgb.shape[:2]
         coarse = [block_mean(t, downscale) for t in (rgb, depth)]
-        return tuple(_expand(v, downscale, h, w) for v in self(*coarse))
+        return tuple(repeat_blocks(v, downscale, h, w) for v in self(*coarse))
 
-
-def _expand(image: torch.Tensor, factor: int, height: int, width: int) -> torch.Tensor:
-    """Repeat each pixel of [h,w,C] into a factor×factor block, edge-padded to height×width."""
-    big = image.repeat_interleave(factor, 0).repeat_interleave(factor, 1)
-    pad_h, pad_w = height - big.shape[0], width - big.shape[1]
-    if pad_h or pad_w:
-        big = F.pad(big.permute(2, 0, 1)[None], (0, pad_w, 0, pad_h), mode="replicate")
-        big = big[0].permute(1, 2, 0)
-    return big

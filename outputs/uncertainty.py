@@ -27,11 +27,18 @@ from functools import cached_property
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from bgs_batch.config import Config
 from bgs_batch.errors import InputError
-from bgs_batch.frames import Level, block_mean, camera_for, crop_and_clip, downsample, to_level
+from bgs_batch.frames import (
+    Level,
+    block_mean,
+    camera_for,
+    crop_and_clip,
+    downsample,
+    repeat_blocks,
+    to_level,
+)
 from bgs_batch.losses import predictive_variance
 from bgs_batch.mapping import Keyframe
 from bgs_batch.render import Camera, Gaussians, render
@@ -99,16 +106,6 @@ def prepare_levels(frame: Frame, intrinsics: np.ndarray, cfg: Config) -> tuple[L
     camera = camera_for(intrinsics, rgb.shape[1], rgb.shape[0], cfg.crop_edge)
     full = to_level(rgb, depth, camera)
     return full, downsample(full, cfg.mapping.downscale)
-
-
-def repeat_blocks(image: torch.Tensor, factor: int, height: int, width: int) -> torch.Tensor:
-    """Each pixel of [h,w,C] repeated into a factor×factor block, edge-padded to height×width."""
-    big = image.repeat_interleave(factor, 0).repeat_interleave(factor, 1)[:height, :width]
-    pad_h, pad_w = height - big.shape[0], width - big.shape[1]
-    if pad_h or pad_w:
-        big = F.pad(big.permute(2, 0, 1)[None], (0, pad_w, 0, pad_h), mode="replicate")
-        big = big[0].permute(1, 2, 0)
-    return big
 
 
 def check_downscale(downscale: int, mapping_downscale: int) -> None:

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from bgs_batch.config import MappingConfig, SeedingConfig, SubmapConfig
-from bgs_batch.frames import Level, block_mean, downsample
+from bgs_batch.frames import Level, block_mean, downsample, repeat_blocks
 from bgs_batch.gaussian_map import GaussianMap
 from bgs_batch.geometry import pose_matrix
 from bgs_batch.metrics import align_rigid, ate
@@ -108,6 +108,20 @@ def test_downsample_blocks_and_camera():
     assert half.depth[0, 0, 0] == pytest.approx((1 + 1 + 3) / 3)
     assert (half.camera.width, half.camera.height, half.camera.fx) == (3, 2, 5)
     assert half.camera.cx == pytest.approx(1.0)  # (2.5 + 0.5) / 2 - 0.5
+
+
+def test_repeat_blocks_pads_to_the_full_size():
+    coarse = torch.arange(6.0).reshape(2, 3, 1)
+    fine = repeat_blocks(coarse, 2, 5, 7)
+    assert fine.shape == (5, 7, 1)
+    assert fine[0, 0, 0] == fine[1, 1, 0] == 0 and fine[4, 6, 0] == 5  # edge rows repeated
+
+
+def test_repeat_blocks_cuts_to_the_full_size_and_undoes_block_mean():
+    coarse = torch.arange(6.0).reshape(2, 3, 1)
+    fine = repeat_blocks(coarse, 2, 3, 5)  # smaller than 4×6: cut
+    assert fine.shape == (3, 5, 1) and fine[2, 4, 0] == 5
+    assert torch.equal(block_mean(repeat_blocks(coarse, 2, 4, 6), 2), coarse)
 
 
 def test_submap_motion_thresholds():

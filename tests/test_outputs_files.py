@@ -16,7 +16,7 @@ from outputs.atomic import TEMP_PREFIX, atomic_dir, atomic_file
 from outputs.ause import depth_sparsification, depth_sparsifications
 from outputs.colormap import NAN_COLOUR, VARIANCE_MAP, Scale, colorize, tile
 from outputs.lpips import Lpips, load_lpips
-from outputs.uncertainty import FrameUncertainty, repeat_blocks
+from outputs.uncertainty import FrameUncertainty
 from outputs.uncertainty_h5 import IMAGES, SCALARS, UncertaintyWriter, read_frame
 from outputs.uncertainty_images import (
     QUANTITIES,
@@ -157,13 +157,6 @@ def test_quantity_pngs_renders_and_panel(tmp_path):
     np.testing.assert_allclose(stored / RENDER_DEPTH_SCALE, item.rendered_depth, atol=1e-4)
     assert cv2.imread(str(rgb)).shape == (12, 16, 3)
     assert panel(item, scales).ndim == 3
-
-
-def test_repeat_blocks_pads_to_the_full_size():
-    coarse = torch.arange(6.0).reshape(2, 3, 1)
-    fine = repeat_blocks(coarse, 2, 5, 7)
-    assert fine.shape == (5, 7, 1)
-    assert fine[0, 0, 0] == fine[1, 1, 0] == 0 and fine[4, 6, 0] == 5  # edge rows repeated
 
 
 # ---------------------------------------------------------------- AUSE sharing the oracle
