@@ -17,7 +17,7 @@ test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest
 
-# Rewrite tests/golden/*.json from fresh runs; commit them only with the reason in the message.
+# Write this CPU's tests/golden/<case>.<cpu>.json from fresh runs; commit only with the reason.
 goldens: $(STAMP)
 	BGS_UPDATE_GOLDENS=1 $(PY) -m pytest -q tests/test_golden.py
 

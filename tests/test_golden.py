@@ -8,9 +8,10 @@ the merged PLY's properties and of each uncertainty image dataset.
 Comparison is exact: runs are deterministic, so bitwise equality is the normal case. The one
 real platform difference is the CPU: numba compiles for the host CPU, and a different
 instruction set changes the order of vectorised sums, which a SLAM run then amplifies. Goldens
-therefore record the CPU they were made on and the test skips (saying so) on another one.
+are therefore kept per CPU (`tests/golden/<case>.<cpu>.json`); on a CPU without its own the test
+skips, saying so.
 
-Regenerate, only with a reason in the commit message:  make goldens
+Record or regenerate this CPU's, only with a reason in the commit message:  make goldens
 """
 
 from __future__ import annotations
@@ -102,18 +103,19 @@ def run_case(store: Path, job: Path) -> dict[str, Any]:
 
 
 def check_golden(name: str, record: dict[str, Any]) -> None:
-    """Compare with (or, with BGS_UPDATE_GOLDENS=1, rewrite) `tests/golden/<name>.json`."""
-    path = GOLDEN_DIR / f"{name}.json"
+    """Compare with (or, with BGS_UPDATE_GOLDENS=1, write) this CPU's golden of case `name`."""
+    path = GOLDEN_DIR / f"{name}.{record['cpu']}.json"
     if os.environ.get(UPDATE_ENV) == "1":
         path.parent.mkdir(exist_ok=True)
         path.write_text(json.dumps(record, indent=1) + "\n")
         return
+    if not path.is_file():
+        recorded = sorted(p.name for p in GOLDEN_DIR.glob(f"{name}.*.json")) or ["none"]
+        pytest.skip(f"no golden for this {record['cpu']} CPU (recorded: {', '.join(recorded)}): "
+                    f"vectorised sums differ by CPU; record one with `make goldens` here")
     golden = json.loads(path.read_text())
-    if golden["cpu"] != record["cpu"]:
-        pytest.skip(f"goldens were recorded on a {golden['cpu']} CPU, this is {record['cpu']}: "
-                    f"vectorised sums differ; regenerate with `make goldens` on this machine")
     for key in golden:  # one assertion per part, so a failure says what moved
-        assert record[key] == golden[key], f"{name}: {key} moved from tests/golden/{name}.json"
+        assert record[key] == golden[key], f"{name}: {key} moved from {path}"
 
 
 @pytest.mark.slow
@@ -130,3 +132,8 @@ def test_golden_real_tum_first_30_frames(tmp_path):
     plan = plan_tum(TUM_EXCERPT, TumOptions(max_frames=30))
     store = write_store(plan.frames, tmp_path / "fr1.h5", plan.meta).path
     check_golden("tum_fr1_rpy_30", run_case(store, tmp_path / "job"))
+
+
+def test_a_cpu_without_goldens_skips_and_names_the_recorded_ones():
+    with pytest.raises(pytest.skip.Exception, match=r"made-up CPU \(recorded: synthetic\.\w+"):
+        check_golden("synthetic", {"cpu": "made-up"})
