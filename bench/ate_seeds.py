@@ -4,11 +4,12 @@ Usage: .venv/bin/python bench/ate_seeds.py [--seeds N] [--frames N] [--tum DIR]
        [--set KEY=VALUE ...]
 
 On fr1/rpy one run's ATE is one draw: the seed (random seeding pixels and keyframe sampling in
-mapping) moves it by a centimetre (seeds 0/1/2: 2.6/3.8/2.6 cm), and so does any change of a
-setting, through the same chaos. A change is an improvement when it lowers the ATE over seeds,
-not in one run. This bench runs the `cpu` preset (with `bench/slam_tum.py`'s fr1 settings) for
-seeds 0..N-1, then the same with the `--set` overrides when there are any, one run at a time,
-and prints per seed the ATE and keyframes of both, their means, and the ratio of the means.
+mapping) moves it by up to a centimetre (seeds 0/1/2: 2.6/3.3/2.5 cm on an Intel Rocket Lake,
+2.6/3.8/2.6 cm on an AMD Zen 4 machine), and so does any change of a setting, through the same
+chaos. A change is an improvement when it lowers the ATE over seeds, not in one run. This bench
+runs the `cpu` preset (with `bench/slam_tum.py`'s fr1 settings) for seeds 0..N-1, then the same
+with the `--set` overrides when there are any, one run at a time, and prints per seed the ATE
+and keyframes of both, their means, and the ratio of the means.
 """
 
 from __future__ import annotations

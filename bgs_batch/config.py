@@ -93,8 +93,8 @@ class MappingConfig:
     # mapped) v_i hardly learns at this rate: after fr1/rpy's 240 frames its 1st-99th
     # percentiles span 2e-4-2e-3 around the initial 9.1e-4, so V stays ~1e-3 while σ²_sensor,D
     # reaches 0.8 and sets the order of Σ_D. At 0.05, v_i spans 0-0.6 and Σ_D ranks depth
-    # errors better than the map term on 2 of 3 seeds, but tracking loses (ATE 3.7/4.9/4.2 cm
-    # against 2.6/3.8/2.6); 0.02 neither (2.9/2.9 cm, map term still ranks better)
+    # errors better than the map term on 2 of 3 seeds, but tracking loses (ATE at seeds 0/1/2:
+    # 3.7/4.9/4.2 cm against 2.6/3.3/2.5); at 0.02 (2.9/2.9 cm) the map term still ranks better
     lr_uncertainty: float = 2.5e-3
 
 
