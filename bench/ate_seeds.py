@@ -56,8 +56,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         plan = plan_tum(args.tum, TumOptions(max_frames=args.frames, undistort=UNDISTORT))
         store = write_store(plan.frames, Path(tmp) / "seq.h5", plan.meta).path
-        configs = {"cpu": []} | ({"cpu + " + " ".join(args.overrides): args.overrides}
-                                  if args.overrides else {})  # fmt: skip
+        configs = {"cpu": []}
+        if args.overrides:
+            configs["cpu + " + " ".join(args.overrides)] = args.overrides
         results = {name: run_seeds(store, Path(tmp), f"job{i}", sets, args.seeds, args.frames)
                    for i, (name, sets) in enumerate(configs.items())}  # fmt: skip
 
