@@ -19,8 +19,9 @@ from bgs_batch.adam import Adam
 from bgs_batch.config import Config
 from bgs_batch.frames import Level
 from bgs_batch.gaussian_map import GaussianMap
+from bgs_batch.loss_kernels import l1_nll_terms
 from bgs_batch.losses import mapping_loss, predictive_variance
-from bgs_batch.render import render
+from bgs_batch.render import Gaussians, render
 from bgs_batch.seeding import (
     backproject,
     far_from,
@@ -116,6 +117,40 @@ class Mapper:
             if it + 1 in (iterations // 2, iterations):
                 pruned += gmap.keep(gmap.opacities() >= m.pruning_threshold, optimizer)
         return MappingStats(added, pruned, iterations, loss_value)
+
+    def refine_uncertainty(self, gmap: GaussianMap, keyframes: list[Keyframe]) -> int:
+        """Fit the opacity uncertainties r_i of a submap being frozen; return the steps taken.
+
+        `uncertainty.refine_passes` passes over the keyframes in order, one Adam step per
+        keyframe on NLL_C + NLL_D (Eq. 13, 14; γ drops out of Adam's steps) with Σ the full
+        predictive variance. Only the two uncertainty parts learn: r_i, and the sensor network
+        as in mapping (its own optimiser and rate); the geometry and colours, and so the
+        renders and residuals, are fixed. The map term thus learns the residuals the sensor
+        term cannot explain, and σ² gives back what V explains.
+        """
+        u = self.cfg.uncertainty
+        if u.refine_passes == 0 or not keyframes or len(gmap) == 0:
+            return 0
+        logits = gmap.params["uncertainty_logits"]
+        fixed = {n: p.detach() for n, p in gmap.params.items() if n != "uncertainty_logits"}
+        gaussians = Gaussians(**fixed, uncertainty_logits=logits)
+        optimizer = Adam([logits], lr=u.refine_lr)
+        for _ in range(u.refine_passes):
+            for keyframe in keyframes:
+                level = keyframe.level
+                out = render(gaussians, keyframe.w2c, level.camera, full_grad=u.full_grad)
+                sensor_c, sensor_d = self.sensor.at_scale(level.rgb, level.depth,
+                                                          u.sensor_downscale)  # fmt: skip
+                var_c = predictive_variance(out.var_color, sensor_c, out.alpha, u)
+                var_d = predictive_variance(out.var_depth, sensor_d, out.alpha, u)
+                nll_c, nll_d = l1_nll_terms(out.color, out.depth, level.rgb, level.depth,
+                                            var_c, var_d)[2:]  # fmt: skip
+                optimizer.zero_grad(set_to_none=True)
+                self.sensor_opt.zero_grad(set_to_none=True)
+                (nll_c + nll_d).backward()
+                optimizer.step()
+                self.sensor_opt.step()
+        return u.refine_passes * len(keyframes)
 
     def _pick(self, keyframes: list[Keyframe], rng: np.random.Generator) -> Keyframe:
         """The current keyframe with probability `current_frame_share`, else an older one."""

@@ -24,6 +24,7 @@ from bgs_batch.gaussian_map import GaussianMap
 from bgs_batch.geometry import euler_zyx_deg, rotation_angle_deg
 from bgs_batch.keyframes import KeyframeSelector
 from bgs_batch.loop_closure import LoopCloser, inject_drift  # issue P8
+from bgs_batch.loop_closure.correction import load_mapped, write_uncertainty
 from bgs_batch.mapping import Keyframe, Mapper
 from bgs_batch.sensor_noise import SensorNoiseNet
 from bgs_batch.store import Frame
@@ -62,6 +63,7 @@ class Timings:
     sensor: float = 0.0
     submaps: float = 0.0
     loop_closure: float = 0.0  # issue P8: features, detection, registration, pose graph
+    refinement: float = 0.0  # uncertainty refinement of the frozen submaps at the end
 
     def add(self, stage: str, seconds: float) -> None:
         setattr(self, stage, getattr(self, stage) + seconds)
@@ -270,10 +272,26 @@ class Slam:
         drifted = state.get("drifted_prev")
         self.drifted_prev = None if drifted is None else np.ascontiguousarray(drifted.numpy())
 
-    def finish(self) -> None:
-        """Write the last submap too (LoopSplat drops it; its frames deserve a map)."""
+    def finish(self, read_frame: Callable[[int], Frame]) -> None:
+        """Write the last submap too (LoopSplat drops it; its frames deserve a map), then refine
+        every submap's uncertainties (`uncertainty.refine_passes`; `read_frame(i)` reads
+        keyframe i). Repeatable: after an interruption it gives the same files again."""
         if self.active_keyframes:
             finished = self.active_keyframes
             self._finish_submap(last_frame=len(self.poses) - 1)
             if self.cfg.loop_closure.final:  # issue P8: LoopSplat's lc.final
                 self._close_loops(finished, event=None)
+        if self.cfg.uncertainty.refine_passes:
+            start = time.perf_counter()
+            for record in self.submaps:
+                self._refine_submap(record, read_frame)
+            self.timings.add("refinement", time.perf_counter() - start)
+
+    def _refine_submap(self, record: SubmapRecord, read_frame: Callable[[int], Frame]) -> None:
+        """`Mapper.refine_uncertainty` on a frozen submap (at its final pose), starting from the
+        r_i as mapped, so that a repeated call gives the same result."""
+        gmap = GaussianMap.from_state_dict(load_mapped(record.path))
+        keyframes = [Keyframe(i, self.prepare(read_frame(i))[1], self.poses[i])
+                     for i in record.keyframes]  # fmt: skip
+        self.mapper.refine_uncertainty(gmap, keyframes)
+        write_uncertainty(record.path, gmap.params["uncertainty_logits"].detach())

@@ -127,7 +127,7 @@ def _run(
                     write_checkpoint(job_dir, done, _job_state(slam, time.perf_counter() - start))
                 if stop.requested and done < n:
                     raise Preempted(stop.requested, done, job_dir)
-        slam.finish()
+        slam.finish(store.__getitem__)
         torch.save(slam.sensor.state_dict(), job_dir / "sensor_net.pt")
         timestamps = store.timestamps[:n]
         poses = np.stack(slam.poses)

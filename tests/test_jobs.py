@@ -3,6 +3,7 @@
 import errno
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -179,6 +180,22 @@ def test_kill_9_then_resume_equals_uninterrupted(resume_case, tmp_path, kill_at)
     proc.kill()
     proc.wait()
     assert not (job / "summary.json").exists()
+    run_job(store, job, load_config("cpu", RESUME))
+    assert_same_result(job, reference)
+
+
+@pytest.mark.slow
+def test_a_run_stopped_after_its_frames_repeats_the_end_to_the_same_files(resume_case, tmp_path):
+    """Stopped in `Slam.finish` (the end-of-run uncertainty refinement has rewritten submap
+    files, no summary yet): the resumed run refines from the mapped r_i again, not twice."""
+    store, reference = resume_case
+    first = torch.load(reference / "submaps/000000.pt", weights_only=True)
+    logits = [first[key]["uncertainty_logits"] for key in ("params", "raw_params")]
+    assert not torch.equal(*logits)  # the cpu preset refines; the raw ones stay as mapped
+    job = tmp_path / "job"
+    shutil.copytree(reference, job)
+    (job / "summary.json").unlink()
+    assert load_latest(job)[0] == 12  # resumes with every frame done: only `finish` runs
     run_job(store, job, load_config("cpu", RESUME))
     assert_same_result(job, reference)
 

@@ -93,3 +93,51 @@ def test_init_err_ratio_doubles_the_budget_of_a_frame_that_starts_far_off(store3
         restored = Slam(cfg, store.intrinsics, tmp_path / "restored")
         restored.load_state_dict(slam.state_dict(), store.__getitem__)
         assert restored.tracker.coarse_losses == slam.tracker.coarse_losses
+
+
+def test_refining_a_frozen_submap_fits_only_the_uncertainties(store30, tmp_path):
+    """uncertainty.refine_passes: r_i and the sensor network learn by NLL_C + NLL_D over the
+    submap's keyframes (the total falls); geometry and colours stay bit for bit; 0 passes is
+    a no-op."""
+    from bgs_batch.loss_kernels import l1_nll_terms
+    from bgs_batch.losses import predictive_variance
+    from bgs_batch.render import render
+    from bgs_batch.slam import Slam
+    from bgs_batch.store import FrameStore
+
+    store = FrameStore(store30)
+    cfg = load_config("cpu", ["mapping.downscale=1", "tracking.downscale=1",
+                              "keyframes.mode=every", "uncertainty.refine_passes=0"])  # fmt: skip
+    slam = Slam(cfg, store.intrinsics, tmp_path / "submaps")
+    for i in range(3):
+        slam.process(store[i])
+    keyframes, u = slam.active_keyframes, cfg.uncertainty
+
+    def total_nll() -> float:
+        with torch.no_grad():
+            nll = 0.0
+            for k in keyframes:
+                out = render(slam.gmap.gaussians(), k.w2c, k.level.camera)
+                sensor_c, sensor_d = slam.sensor.at_scale(k.level.rgb, k.level.depth,
+                                                          u.sensor_downscale)  # fmt: skip
+                var_c = predictive_variance(out.var_color, sensor_c, out.alpha, u)
+                var_d = predictive_variance(out.var_depth, sensor_d, out.alpha, u)
+                terms = l1_nll_terms(out.color, out.depth, k.level.rgb, k.level.depth, var_c, var_d)
+                nll += float(terms[2] + terms[3])
+            return nll
+
+    params = slam.gmap.state_dict()
+    sensor = {n: p.clone() for n, p in slam.sensor.state_dict().items()}
+    before = total_nll()
+    assert slam.mapper.refine_uncertainty(slam.gmap, keyframes) == 0
+    assert total_nll() == before
+
+    u.refine_passes = 5
+    assert slam.mapper.refine_uncertainty(slam.gmap, keyframes) == 5 * len(keyframes) == 15
+    after = total_nll()
+    assert before - after > 0.05 * len(keyframes), (before, after)  # measured: 0.46 in all
+    refined = slam.gmap.state_dict()
+    for name, value in params.items():
+        changed = not torch.equal(refined[name], value)
+        assert changed is (name == "uncertainty_logits"), name
+    assert any(not torch.equal(p, sensor[n]) for n, p in slam.sensor.state_dict().items())

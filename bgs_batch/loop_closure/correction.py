@@ -7,6 +7,10 @@ its own (checkpointed) state, never from the file's, so a run resumed from a che
 before a correction gives bit for bit the result of an uninterrupted one. ``params`` is always
 computed from ``raw_params`` in one step, so it does not depend on how many corrections there
 were on the way.
+
+The end-of-run uncertainty refinement (`Slam.finish`) rewrites only the r_i of ``params``; the
+raw ones stay as mapped, so loop closure (which reads the raw Gaussians) is unaffected, and a
+repeated refinement starts from the same values.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from bgs_batch.geometry import matrix_to_quat
 
 RAW_KEY = "raw_params"
 CORRECTION_KEY = "correction"
+UNCERTAINTY_KEY = "uncertainty_logits"
 
 
 def quat_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -54,16 +59,36 @@ def load_raw(path: str | Path) -> dict[str, torch.Tensor]:
 
 
 def write_correction(path: str | Path, correction: np.ndarray) -> None:
-    """Rewrite a submap file with `correction` (cumulative) applied to its raw Gaussians.
-
-    Atomic (temporary file, then rename): a crash leaves the old or the new file, never half.
-    """
+    """Rewrite a submap file with `correction` (cumulative) applied to its raw Gaussians
+    (atomic; the r_i of the raw Gaussians, undoing any uncertainty refinement)."""
     path = Path(path)
     data = torch.load(path, weights_only=True)
     raw = data.get(RAW_KEY, data["params"])
     data[RAW_KEY] = raw
     data["params"] = transform_params(raw, correction)
     data[CORRECTION_KEY] = torch.from_numpy(np.array(correction, np.float64))
+    _save_atomic(data, path)
+
+
+def load_mapped(path: str | Path) -> dict[str, torch.Tensor]:
+    """The Gaussians of a submap file as corrected, with the r_i as mapped (before any
+    uncertainty refinement)."""
+    data = torch.load(path, weights_only=True)
+    raw = data.get(RAW_KEY, data["params"])
+    return {**data["params"], UNCERTAINTY_KEY: raw[UNCERTAINTY_KEY]}
+
+
+def write_uncertainty(path: str | Path, logits: torch.Tensor) -> None:
+    """Rewrite a submap file's r_i in ``params`` (atomic), keeping the mapped ones as raw."""
+    path = Path(path)
+    data = torch.load(path, weights_only=True)
+    data[RAW_KEY] = data.get(RAW_KEY, data["params"])
+    data["params"] = {**data["params"], UNCERTAINTY_KEY: logits.clone()}
+    _save_atomic(data, path)
+
+
+def _save_atomic(data: dict, path: Path) -> None:
+    """A crash leaves the old or the new file, never half of one."""
     tmp = path.with_name(f".{path.name}.tmp")
     torch.save(data, tmp)
     os.replace(tmp, path)
