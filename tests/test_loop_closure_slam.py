@@ -80,8 +80,9 @@ def test_loops_are_found_where_they_are_and_recorded(loop_case):
     assert report["optimised"] and report["loops"][0]["method"] in ("render", "icp")
     assert len(report["correction"]) == 12 and report["max_shift_m"] > 0
 
-    # every corrected submap file holds raw + corrected Gaussians and its correction, and the
-    # trajectory is the logged (as-tracked) pose moved by its submap's correction
+    # every corrected submap file holds raw + corrected Gaussians and its correction (the r_i
+    # of the corrected ones refined at the end of the run), and the trajectory is the logged
+    # (as-tracked) pose moved by its submap's correction
     _, trajectory = read_tum(job / "trajectory.txt")
     corrected = 0
     for k, path in enumerate(sorted((job / "submaps").glob("*.pt"))):
@@ -90,7 +91,9 @@ def test_loops_are_found_where_they_are_and_recorded(loop_case):
         if "correction" in data:
             corrected += 1
             moved = transform_params(data["raw_params"], correction)
+            refined = moved.pop("uncertainty_logits"), data["params"]["uncertainty_logits"]
             assert all(torch.equal(moved[n], data["params"][n]) for n in moved)
+            assert not torch.equal(*refined)  # the cpu preset refines them
         for i in frames[k]:
             logged = np.vstack([np.reshape(events[i]["pose"], (3, 4)), [0, 0, 0, 1]])
             np.testing.assert_allclose(trajectory[i], correction @ logged, atol=1e-6)
