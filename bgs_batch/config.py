@@ -270,8 +270,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "uncertainty.sensor_initial": 1e-3,
         # at the end, fit the frozen submaps' r_i and the sensor network by the NLL. fr1/rpy, 240
         # frames, seeds 0/1/2: the depth AUSE of Σ_D falls from 0.0105/0.0184/0.0106 to
-        # 0.0073/0.0105/0.0082, below the map term's 0.0089/0.0121/0.0086 (seeds 1, 2 refined
-        # offline on their runs' maps); 37 s; tracking is over by then: the same trajectory
+        # 0.0073/0.0105/0.0083, below the map term's 0.0089/0.0121/0.0087; 37 s; tracking is
+        # over by then: the same trajectories
         "uncertainty.refine_passes": 15,
         # a batch run is read at the end: also close loops from the last submap (LoopSplat's
         # lc.final, off in its configs; fr1/rpy 240 frames with sensor_lr 1e-4: 2.80 -> 2.61 cm)
@@ -306,6 +306,9 @@ def check(config: Config) -> None:
     if u.sensor_initial and u.sensor_initial <= u.sensor_min:
         raise ConfigError(f"uncertainty.sensor_initial={u.sensor_initial} must exceed "
                           f"uncertainty.sensor_min={u.sensor_min} (or be 0 for the default init)")
+    if u.refine_passes < 0 or u.refine_lr <= 0:
+        raise ConfigError(f"uncertainty.refine_passes={u.refine_passes} must be >= 0 (0: off) "
+                          f"and uncertainty.refine_lr={u.refine_lr} > 0")
 
 
 def config_from_dict(data: dict[str, Any]) -> Config:

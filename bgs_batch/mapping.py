@@ -119,7 +119,8 @@ class Mapper:
         return MappingStats(added, pruned, iterations, loss_value)
 
     def refine_uncertainty(self, gmap: GaussianMap, keyframes: list[Keyframe]) -> int:
-        """Fit the opacity uncertainties r_i of a submap being frozen; return the steps taken.
+        """Fit the opacity uncertainties r_i of a frozen submap (end of run, `Slam.finish`)
+        and the sensor network; return the steps taken.
 
         `uncertainty.refine_passes` passes over the keyframes in order, one Adam step per
         keyframe on NLL_C + NLL_D (Eq. 13, 14; γ drops out of Adam's steps) with Σ the full

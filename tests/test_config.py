@@ -46,3 +46,9 @@ def test_bad_overrides_are_explained(override, message):
 def test_unknown_preset():
     with pytest.raises(ConfigError, match="choose one of paper, cpu"):
         load_config("gpu")
+
+
+def test_refinement_settings_are_checked():
+    for bad in ("uncertainty.refine_passes=-1", "uncertainty.refine_lr=0"):
+        with pytest.raises(ConfigError, match="refine_passes"):
+            load_config("cpu", [bad])
