@@ -1,7 +1,9 @@
 """Camera tracking against the active submap (paper §III-B, Eq. 15-17; DESIGN.md §4).
 
 The pose is a left perturbation of the initial world-to-camera matrix, ``w2c = exp(ξ) · w2c₀``
-with ξ = (ρ, φ), optimised by Adam (amsgrad, LoopSplat's rates) on the uncertainty-normalised
+with ξ = (ρ, φ), or ``P exp(ξ) P⁻¹ · w2c₀`` with P the shift to a point on the optical axis at
+``tracking.pivot_depth_ratio`` × the median depth (the rotation turns the camera about that
+point), optimised by Adam (amsgrad, LoopSplat's rates) on the uncertainty-normalised
 L1 loss. The map, and the sensor network's variance (computed once per frame), are fixed. CPU
 levers: a coarse-to-fine image pyramid and early stopping once the loss stops improving. The
 lowest-loss pose of the finest level is kept, with its predictive-surprise scores (Eq. 9).
@@ -106,6 +108,7 @@ class Tracker:
         shapes = shape_matrices(gaussians.log_scales, gaussians.quats)  # the map stays fixed
         try:
             w2c, loss, iterations = w2c_init.to(torch.float64), float("inf"), 0
+            pivot = self.pivot(frame)
             threshold, doubled = self._doubling_threshold(), False
             for depth, ((factor, level), budget) in enumerate(
                 zip(self.pyramid(frame), self.iteration_budget(), strict=True)
@@ -114,8 +117,8 @@ class Tracker:
                 lr_scale = self.cfg.tracking.level_lr_factor**depth
                 # the coarsest level tests its initial loss; finer levels inherit the doubling
                 w2c, loss, used, best, hard = self._optimise(
-                    gaussians, shapes, level, variances, w2c, budget * (1 + doubled), lr_scale,
-                    threshold if depth == 0 else math.inf)  # fmt: skip
+                    gaussians, shapes, level, variances, w2c, pivot, budget * (1 + doubled),
+                    lr_scale, threshold if depth == 0 else math.inf)  # fmt: skip
                 doubled = doubled or hard
                 if depth == 0 and self.cfg.tracking.init_err_ratio and math.isfinite(loss):
                     self.coarse_losses.append(loss)
@@ -130,6 +133,17 @@ class Tracker:
             for p in gmap.params.values():
                 p.requires_grad_(True)
         return TrackResult(w2c, loss, iterations, *scores, doubled)
+
+    def pivot(self, frame: Level) -> torch.Tensor:
+        """The (4, 4) shift P of ``w2c = P exp(ξ) P⁻¹ w2c₀``: to the point on the optical axis
+        at ``pivot_depth_ratio`` × the median valid measured depth of `frame` (the identity
+        for ratio 0: rotations about the camera centre)."""
+        pivot = torch.eye(4, dtype=torch.float64)
+        ratio = self.cfg.tracking.pivot_depth_ratio
+        valid = frame.depth[frame.depth > 0]
+        if ratio and valid.numel():
+            pivot[2, 3] = ratio * float(valid.median())
+        return pivot
 
     def _sensor_at(self, color: torch.Tensor, depth: torch.Tensor, factor: int) -> Variances:
         rel = factor // self.cfg.mapping.downscale
@@ -153,11 +167,13 @@ class Tracker:
         level: Level,
         variances: Variances,
         w2c_start: torch.Tensor,
+        pivot: torch.Tensor,
         budget: int,
         lr_scale: float = 1.0,
         double_above: float = float("inf"),
     ) -> tuple[torch.Tensor, float, int, Images | None, bool]:
-        """Adam on ξ at one pyramid level (rates × `lr_scale`); returns the lowest-loss pose,
+        """Adam on ξ of ``w2c = pivot · exp(ξ) · pivot⁻¹ · w2c_start`` at one pyramid level
+        (rates × `lr_scale`); returns the lowest-loss pose,
         its loss, the iterations used, the render there (colour, depth, Σ_C, Σ_D; None when
         no iteration gave a finite loss), which the surprise scores reuse, and whether the
         budget was doubled because the initial loss exceeded `double_above`."""
@@ -170,9 +186,10 @@ class Tracker:
         )  # fmt: skip
         best_w2c, best, stale, used, doubled = w2c_start, float("inf"), 0, 0, False
         best_images: Images | None = None
+        start = torch.linalg.inv(pivot) @ w2c_start
         while used < budget:
             used += 1
-            w2c = se3_exp(torch.cat([rho, phi])) @ w2c_start
+            w2c = pivot @ se3_exp(torch.cat([rho, phi])) @ start
             out, var_c, var_d = self._render(gaussians, shapes, level, variances, w2c)
             loss = tracking_loss(out.color, out.depth, out.alpha, level.rgb, level.depth,
                                  var_c, var_d, t)  # fmt: skip

@@ -52,3 +52,8 @@ def test_refinement_settings_are_checked():
     for bad in ("uncertainty.refine_passes=-1", "uncertainty.refine_lr=0"):
         with pytest.raises(ConfigError, match="refine_passes"):
             load_config("cpu", [bad])
+
+
+def test_a_pivot_behind_the_camera_is_refused():
+    with pytest.raises(ConfigError, match="pivot_depth_ratio=-0.5 must be >= 0"):
+        load_config("cpu", ["tracking.pivot_depth_ratio=-0.5"])
