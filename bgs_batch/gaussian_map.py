@@ -16,6 +16,7 @@ from bgs_batch.geometry import kd_tree
 from bgs_batch.render import Gaussians
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "colors", "uncertainty_logits")
+UNCERTAINTY_KEY = PARAMS[-1]  # r_i, the only parameter the end-of-run refinement changes
 SCALE_NEIGHBOURS = 3  # initial scale: RMS distance to this many nearest Gaussians
 ADAM_EPS = 1e-15  # LoopSplat's mapping Adam
 MIN_INITIAL_SCALE = 1e-4  # m; guards log(0) for duplicate points

@@ -18,7 +18,7 @@ import torch
 from bgs_batch.adam import Adam
 from bgs_batch.config import Config
 from bgs_batch.frames import Level
-from bgs_batch.gaussian_map import GaussianMap
+from bgs_batch.gaussian_map import UNCERTAINTY_KEY, GaussianMap
 from bgs_batch.loss_kernels import l1_nll_terms
 from bgs_batch.losses import mapping_loss, predictive_variance
 from bgs_batch.render import Gaussians, render
@@ -132,8 +132,8 @@ class Mapper:
         u = self.cfg.uncertainty
         if u.refine_passes == 0 or not keyframes or len(gmap) == 0:
             return 0
-        logits = gmap.params["uncertainty_logits"]
-        fixed = {n: p.detach() for n, p in gmap.params.items() if n != "uncertainty_logits"}
+        logits = gmap.params[UNCERTAINTY_KEY]
+        fixed = {n: p.detach() for n, p in gmap.params.items() if n != UNCERTAINTY_KEY}
         gaussians = Gaussians(**fixed, uncertainty_logits=logits)
         optimizer = Adam([logits], lr=u.refine_lr)
         for _ in range(u.refine_passes):

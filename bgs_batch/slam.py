@@ -20,7 +20,7 @@ import torch
 from bgs_batch.adam import Adam
 from bgs_batch.config import Config, SubmapConfig
 from bgs_batch.frames import Level, camera_for, crop_and_clip, downsample, to_level
-from bgs_batch.gaussian_map import GaussianMap
+from bgs_batch.gaussian_map import UNCERTAINTY_KEY, GaussianMap
 from bgs_batch.geometry import euler_zyx_deg, rotation_angle_deg
 from bgs_batch.keyframes import KeyframeSelector
 from bgs_batch.loop_closure import LoopCloser, inject_drift  # issue P8
@@ -294,4 +294,4 @@ class Slam:
         keyframes = [Keyframe(i, self.prepare(read_frame(i))[1], self.poses[i])
                      for i in record.keyframes]  # fmt: skip
         self.mapper.refine_uncertainty(gmap, keyframes)
-        write_uncertainty(record.path, gmap.params["uncertainty_logits"].detach())
+        write_uncertainty(record.path, gmap.params[UNCERTAINTY_KEY].detach())

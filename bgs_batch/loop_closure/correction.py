@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bgs_batch.gaussian_map import UNCERTAINTY_KEY
 from bgs_batch.geometry import matrix_to_quat
 
 RAW_KEY = "raw_params"
 CORRECTION_KEY = "correction"
-UNCERTAINTY_KEY = "uncertainty_logits"
 
 
 def quat_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
