@@ -140,9 +140,10 @@ class Tracker:
         for ratio 0: rotations about the camera centre)."""
         pivot = torch.eye(4, dtype=torch.float64)
         ratio = self.cfg.tracking.pivot_depth_ratio
-        valid = frame.depth[frame.depth > 0]
-        if ratio and valid.numel():
-            pivot[2, 3] = ratio * float(valid.median())
+        if ratio:  # the median only when it is used: this runs on every frame
+            valid = frame.depth[frame.depth > 0]
+            if valid.numel():
+                pivot[2, 3] = ratio * float(valid.median())
         return pivot
 
     def _sensor_at(self, color: torch.Tensor, depth: torch.Tensor, factor: int) -> Variances:
@@ -173,10 +174,10 @@ class Tracker:
         double_above: float = float("inf"),
     ) -> tuple[torch.Tensor, float, int, Images | None, bool]:
         """Adam on ξ of ``w2c = pivot · exp(ξ) · pivot⁻¹ · w2c_start`` at one pyramid level
-        (rates × `lr_scale`); returns the lowest-loss pose,
-        its loss, the iterations used, the render there (colour, depth, Σ_C, Σ_D; None when
-        no iteration gave a finite loss), which the surprise scores reuse, and whether the
-        budget was doubled because the initial loss exceeded `double_above`."""
+        (rates × `lr_scale`); returns the lowest-loss pose, its loss, the iterations used, the
+        render there (colour, depth, Σ_C, Σ_D; None when no iteration gave a finite loss),
+        which the surprise scores reuse, and whether the budget was doubled because the
+        initial loss exceeded `double_above`."""
         t = self.cfg.tracking
         rho = torch.zeros(3, dtype=torch.float64, requires_grad=True)
         phi = torch.zeros(3, dtype=torch.float64, requires_grad=True)
