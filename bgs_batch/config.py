@@ -270,11 +270,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         "tracking.early_stop_rel": 1e-4,
         "tracking.early_stop_patience": 10,
         "mapping.iterations": 40,
-        # a submap's first keyframe is the only map its next frames track against, so it gets
-        # more iterations than the paper's 100 (the cost is paid once per submap: fr1/rpy, 240
-        # frames, 6 submaps, ~+50 s). Seeds 0/1/2/3: ATE 2.50/2.91/2.52/3.00 cm at 60 ->
-        # 2.41/2.34/2.43/2.36 at 150 (at 100, seed 0 gave 2.68: one draw moves by ~0.3 cm)
-        "mapping.new_submap_iterations": 150,
+        "mapping.new_submap_iterations": 60,
         "mapping.downscale": 2,
         "uncertainty.sensor_downscale": 4,  # the network at 80×60: ~90 → ~20 ms per mapping step
         # start the network at the map floor's scale, not at softplus(0) ≈ 0.69: from 0.69 the
