@@ -1,24 +1,29 @@
-.PHONY: demo test install lint goldens bench clean
+.PHONY: demo test install system-deps lint goldens bench clean
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+
+# the shared libraries pip cannot install (Open3D's libusb, OpenMP): checked on every run, since
+# a machine can lose them while keeping .venv; as root they are installed, else the command named
+system-deps:
+	@bash scripts/system-deps.sh
 
 $(STAMP): setup.cfg pyproject.toml
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install --disable-pip-version-check -q -e '.[dev]'
 	@touch $(STAMP)
 
-install: $(STAMP)
+install: system-deps $(STAMP)
 
-demo: $(STAMP)
+demo: install
 	$(VENV)/bin/bgs demo
 
-test: $(STAMP)
+test: install
 	$(VENV)/bin/ruff check .
 	$(PY) -m pytest
 
-# Write this CPU's tests/golden/<case>.<cpu>.json from fresh runs; commit only with the reason.
-goldens: $(STAMP)
+# Write tests/golden/<case>.json from fresh runs pinned to x86-64-v3; commit only with the reason.
+goldens: install
 	BGS_UPDATE_GOLDENS=1 $(PY) -m pytest -q tests/test_golden.py
 
 lint: $(STAMP)
