@@ -20,7 +20,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from slam_tum import DEFAULT_TUM, TUM_FR1_SETTINGS, UNDISTORT
+from slam_tum import DEFAULT_TUM
 
 from bgs_batch.config import ConfigError, load_config
 from converters.pipeline import write_store
@@ -33,7 +33,7 @@ def run_seeds(store: Path, root: Path, name: str, overrides: list[str], seeds: i
     """One cpu-preset run per seed with `overrides`, in job folders below `root`."""
     runs = []
     for seed in range(seeds):
-        cfg = load_config("cpu", [*TUM_FR1_SETTINGS, *overrides, f"seed={seed}"])
+        cfg = load_config("cpu", [*overrides, f"seed={seed}"])
         runs.append(run_job(store, root / f"{name}_seed{seed}", cfg, max_frames=frames))
     return runs
 
@@ -54,7 +54,7 @@ def main() -> None:
         sys.exit(f"bench/ate_seeds.py: {err}")
 
     with tempfile.TemporaryDirectory() as tmp:
-        plan = plan_tum(args.tum, TumOptions(max_frames=args.frames, undistort=UNDISTORT))
+        plan = plan_tum(args.tum, TumOptions(max_frames=args.frames))
         store = write_store(plan.frames, Path(tmp) / "seq.h5", plan.meta).path
         configs = {"cpu": []}
         if args.overrides:

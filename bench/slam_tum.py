@@ -3,16 +3,16 @@
 Usage: .venv/bin/python bench/slam_tum.py [--tum DIR] [--frames N] [--every-frames M]
        [--paper-frames P]
 
-The store is converted with ``--undistort`` and bgs runs with ``crop_edge=50``, the TUM fr1
-camera settings of the reference systems; Open3D reads the same undistorted store. Rows, all
-from one run: Open3D's frame-to-model TSDF SLAM (voxel 1 cm, the classical CPU baseline; in a
-child process, so that the peak RSS and the speed are bgs's own); bgs `cpu` preset (surprise
-keyframes); the keyframe check on the first M frames, a `cpu` run with surprise keyframes
-against one mapping every frame (mapping every frame is ~3x slower; both runs see the same M
-frames and differ only in `keyframes.mode`, so loop closures that the full run finds later,
-and that move its early submaps, do not enter the ratio); bgs `paper` preset on the first P
-frames. Targets (issue P3): ATE ≤ 2.5 cm, ≥ 0.5 fps, keyframes ≤ 35 % with ATE ≤ 1.15×
-every-frame, peak RSS ≤ 4 GiB. Prints a table and one SUMMARY line.
+The store is converted and run with the defaults, which give the reference systems' TUM fr1
+camera settings (undistorted, 50 px cropped at every border); Open3D reads the same undistorted
+store. Rows, all from one run: Open3D's frame-to-model TSDF SLAM (voxel 1 cm, the classical CPU
+baseline; in a child process, so that the peak RSS and the speed are bgs's own); bgs `cpu`
+preset (surprise keyframes); the keyframe check on the first M frames, a `cpu` run with
+surprise keyframes against one mapping every frame (mapping every frame is ~3x slower; both
+runs see the same M frames and differ only in `keyframes.mode`, so loop closures that the full
+run finds later, and that move its early submaps, do not enter the ratio); bgs `paper` preset
+on the first P frames. Targets (issue P3): ATE ≤ 2.5 cm, ≥ 0.5 fps, keyframes ≤ 35 % with ATE
+≤ 1.15× every-frame, peak RSS ≤ 4 GiB. Prints a table and one SUMMARY line.
 """
 
 from __future__ import annotations
@@ -37,11 +37,6 @@ from jobs.run import run_job
 from outputs.export import ExportOptions, export_job
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-# The reference systems' TUM fr1 camera block (LoopSplat and the authors' configs): colour
-# undistorted with the published fr1 coefficients (we undistort depth too, nearest neighbour)
-# and 50 px cropped at every border, where undistortion and the depth registration are poorest
-UNDISTORT = True
-TUM_FR1_SETTINGS = ["crop_edge=50"]
 DEFAULT_TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_rpy"
 # Open3D dense SLAM settings (its t_reconstruction_system defaults, voxel 1 cm)
 O3D_VOXEL = 0.01
@@ -124,7 +119,7 @@ def main() -> None:
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        plan = plan_tum(args.tum, TumOptions(max_frames=args.frames, undistort=UNDISTORT))
+        plan = plan_tum(args.tum, TumOptions(max_frames=args.frames))
         store_path = write_store(plan.frames, Path(tmp) / "seq.h5", plan.meta).path
         with FrameStore(store_path) as store:
             n = len(store)
@@ -143,7 +138,7 @@ def main() -> None:
             ("bgs paper", "paper", [], min(args.paper_frames, n)),
         ):
             job = Path(tmp) / name.replace(" ", "_").replace(",", "")
-            cfg = load_config(preset, TUM_FR1_SETTINGS + sets)
+            cfg = load_config(preset, sets)
             summary = run_job(store_path, job, cfg, max_frames=frames)
             runs[name] = summary
             rows.append((name, frames, summary.ate_rmse_m, summary.fps, summary.keyframes))

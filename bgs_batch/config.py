@@ -8,7 +8,6 @@ disagree, the field says which one it follows and the other is one override away
 from __future__ import annotations
 
 import dataclasses
-import json
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -240,7 +239,9 @@ class Config:
 
     seed: int = 0
     threads: int = 2
-    crop_edge: int = 0  # pixels removed at every image border before anything else
+    # pixels removed at every image border before anything else; None: the store's recommended
+    # crop (`bgs inspect` shows it; the reference systems' crop for the camera, else 0)
+    crop_edge: int | None = None
     max_depth: float = 10.0  # m; deeper readings are treated as invalid
     checkpoint_every: int = 10  # frames between job checkpoints (and on SIGTERM/SIGUSR1/SIGINT)
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
@@ -253,9 +254,6 @@ class Config:
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -327,9 +325,27 @@ def check(config: Config) -> None:
     if u.refine_passes < 0 or u.refine_lr <= 0:
         raise ConfigError(f"uncertainty.refine_passes={u.refine_passes} must be >= 0 (0: off) "
                           f"and uncertainty.refine_lr={u.refine_lr} > 0")
+    if config.crop_edge is not None and config.crop_edge < 0:
+        raise ConfigError(f"crop_edge={config.crop_edge} must be >= 0 (or none: the store's)")
     if config.tracking.pivot_depth_ratio < 0:
         raise ConfigError(f"tracking.pivot_depth_ratio={config.tracking.pivot_depth_ratio} must "
                           "be >= 0 (0: rotate about the camera centre, 1: about the median depth)")
+
+
+def for_store(config: Config, recommended_crop: int, store: str) -> tuple[Config, dict[str, str]]:
+    """The config with the store's recommendations filled in where it leaves them open, and
+    where each such value came from (for ``config.json``)."""
+    if config.crop_edge is not None:
+        return config, {"crop_edge": "set (--set crop_edge=N)"}
+    resolved = dataclasses.replace(config, crop_edge=recommended_crop)
+    return resolved, {"crop_edge": f"the store's recommended crop ({store}; `bgs inspect`)"}
+
+
+def check_crop(crop_edge: int, width: int, height: int) -> None:
+    """Refuse a crop that leaves nothing of a `width` × `height` image."""
+    if 2 * crop_edge >= min(width, height):
+        raise ConfigError(f"crop_edge={crop_edge} leaves nothing of the {width}x{height} images; "
+                          f"use --set crop_edge=N with N < {min(width, height) // 2}")
 
 
 def config_from_dict(data: dict[str, Any]) -> Config:
@@ -373,6 +389,11 @@ def parse_value(config: Config, key: str, text: str) -> Any:
     kind = typing.get_type_hints(type(owner))[f.name]
     if dataclasses.is_dataclass(getattr(owner, f.name)):
         raise ConfigError(f"{key} is a section; set one of its fields, e.g. {key}.<field>=…")
+    optional = type(None) in typing.get_args(kind)
+    if optional:
+        if text.lower() == "none":
+            return None
+        kind = next(k for k in typing.get_args(kind) if k is not type(None))
     try:
         if typing.get_origin(kind) is Literal:
             if text not in typing.get_args(kind):

@@ -103,8 +103,9 @@ class Slam:
     def prepare(self, frame: Frame) -> tuple[Level, Level]:
         """The frame at input resolution (cropped, depth clipped) and at mapping resolution."""
         cfg = self.cfg
-        rgb, depth = crop_and_clip(frame.rgb, frame.depth, cfg.crop_edge, cfg.max_depth)
-        camera = camera_for(self.intrinsics, rgb.shape[1], rgb.shape[0], cfg.crop_edge)
+        crop = cfg.crop_edge or 0  # `run_job` puts the store's crop in place of None
+        rgb, depth = crop_and_clip(frame.rgb, frame.depth, crop, cfg.max_depth)
+        camera = camera_for(self.intrinsics, rgb.shape[1], rgb.shape[0], crop)
         full = to_level(rgb, depth, camera)
         return full, downsample(full, cfg.mapping.downscale)
 

@@ -8,7 +8,9 @@ Layout::
     /pose_gt     float64 [N,4,4]    camera-to-world ground truth, NaN rows where unknown (optional)
     /intrinsics  float64 [3,3]      pinhole matrix of the stored, registered RGB-D pair
     attributes   schema_version, source_format, source_path, sequence, depth_scale, distortion,
-                 distortion_applied, width, height, created_by, provenance (JSON of every choice)
+                 distortion_applied, width, height, created_by, provenance (JSON of every choice);
+                 optional: crop_edge (pixels per border the reference systems crop for this
+                 camera; `bgs run` applies it by default; absent = 0)
 
 Frames are deflated in worker threads with ISA-L (5x faster than zlib at level 1, and it
 releases the GIL) and written as raw chunks, so conversion uses every core; the files stay plain
@@ -77,6 +79,7 @@ class StoreMeta:
     distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
     distortion_applied: bool = False  # True: images were undistorted with `distortion`
     has_gt: bool = False
+    crop_edge: int = 0  # recommended border crop (pixels per side); 0: none
     provenance: dict[str, Any] = field(default_factory=dict)
 
 
@@ -248,6 +251,7 @@ class FrameStoreWriter:
             width=w,
             height=h,
             created_by=f"bgs-batch {__version__}",
+            crop_edge=int(meta.crop_edge),
             provenance=json.dumps(meta.provenance, sort_keys=True),
         )
         validate(f, self.tmp)
@@ -309,6 +313,10 @@ def validate(f: h5py.File, path: Path | str) -> None:
         problems.append(f"/intrinsics must be a finite 3x3 pinhole matrix, is {k.tolist()}")
     if float(f.attrs["depth_scale"]) <= 0:
         problems.append("depth_scale must be positive")
+    crop = int(f.attrs.get("crop_edge", 0))
+    if rgb.ndim == 4 and not 0 <= 2 * crop < min(rgb.shape[1:3]):
+        problems.append(f"crop_edge {crop} must be >= 0 and leave part of the "
+                        f"{rgb.shape[2]}x{rgb.shape[1]} image")  # fmt: skip
     if len(np.atleast_1d(f.attrs["distortion"])) != 5:
         problems.append("distortion must hold 5 coefficients (k1 k2 p1 p2 k3)")
     if "pose_gt" in f:
@@ -368,6 +376,7 @@ class FrameStore:
         self.timestamps: np.ndarray = self._file["timestamp"][()]
         self.depth_scale = float(self.attrs["depth_scale"])
         self.width, self.height = int(self.attrs["width"]), int(self.attrs["height"])
+        self.crop_edge = int(self.attrs.get("crop_edge", 0))  # recommended; stores before it: 0
         self.provenance: dict[str, Any] = json.loads(self.attrs["provenance"])
         self._poses = self._file["pose_gt"][()] if "pose_gt" in self._file else None
         self._fast = _is_our_pipeline(self._rgb) and _is_our_pipeline(self._depth)

@@ -31,6 +31,7 @@ class StoreSummary:
     depth_scale: float
     distortion: list[float]
     distortion_applied: bool
+    crop_edge: int  # recommended border crop, pixels per side (`bgs run` applies it)
     source_format: str
     source_path: str
     sequence: str
@@ -75,6 +76,7 @@ def summarize(store: FrameStore) -> StoreSummary:
         depth_scale=store.depth_scale,
         distortion=[float(x) for x in np.atleast_1d(a["distortion"])],
         distortion_applied=bool(a["distortion_applied"]),
+        crop_edge=store.crop_edge,
         source_format=str(a["source_format"]),
         source_path=str(a["source_path"]),
         sequence=str(a["sequence"]),
@@ -102,6 +104,8 @@ def print_summary(summary: StoreSummary, console: Console | None = None) -> None
         "intrinsics": f"fx {k['fx']:.2f}  fy {k['fy']:.2f}  cx {k['cx']:.2f}  cy {k['cy']:.2f}",
         "distortion": " ".join(f"{x:g}" for x in s.distortion)
         + (" (applied: images undistorted)" if s.distortion_applied else " (not applied)"),
+        "crop": (f"{s.crop_edge} px per border, applied by `bgs run` (--set crop_edge=N "
+                 "overrides)" if s.crop_edge else "none recommended"),
         "created by": s.created_by,
     }
     rows |= {f"  {key}": str(value) for key, value in sorted(s.provenance.items())}

@@ -23,7 +23,7 @@ import numpy as np
 from bgs_batch.errors import InputError
 from bgs_batch.geometry import interpolate_poses
 from bgs_batch.store import StoreMeta
-from converters.association import associate
+from converters.association import associate, association_summary
 from converters.bag_index import (
     BAG_ERRORS,
     NS_PER_S,
@@ -76,6 +76,7 @@ class BagPlan:
     frames: Iterable[SourceFrame]
     count: int
     meta: StoreMeta
+    notes: tuple[str, ...] = ()  # for the user: what the association dropped
 
 
 def plan_bag(path: Path, options: BagOptions) -> BagPlan:
@@ -108,7 +109,7 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
     depth_info = choose_camera_info(
         index, depth.topic, rgb.topic, options.depth_info_topic, "--depth-info-topic"
     )
-    pairs, provenance = _associate(index, rgb, depth, options)
+    pairs, provenance, association_note = _associate(index, rgb, depth, options)
     stamps = np.asarray(rgb.stamps, np.int64)[pairs[:, 0]] / NS_PER_S
 
     depth_scale, scale_source = _depth_scale(index, depth, options)
@@ -151,7 +152,7 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
     decoder = PairDecoder(path, rgb, depth, registration, reader.deserialize)
     frames = _stream_frames(reader, path, rgb, depth, pairs, stamps, poses, decoder)
     weakref.finalize(frames, reader.close)  # a second pass that never starts
-    return BagPlan(frames, len(pairs), meta)
+    return BagPlan(frames, len(pairs), meta, (association_note,))
 
 
 def choose_image_topic(index: BagIndex, role: str, requested: str | None) -> ImageTopic:
@@ -237,16 +238,16 @@ def _shared_prefix(info_topic: str, image_topic: str) -> int:
 
 def _associate(
     index: BagIndex, rgb: ImageTopic, depth: ImageTopic, options: BagOptions
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """Pairs of message ordinals (rgb, depth) in RGB-time order, and their provenance."""
+) -> tuple[np.ndarray, dict[str, Any], str]:
+    """Pairs of message ordinals (rgb, depth) in RGB-time order, their provenance and the line
+    that tells the user what was dropped."""
     if rgb.topic == depth.topic:
         raise InputError(f"{index.path}: RGB and depth topic are both {rgb.topic}")
     rgb_ns, depth_ns = np.asarray(rgb.stamps, np.int64), np.asarray(depth.stamps, np.int64)
     _, rgb_first = np.unique(rgb_ns, return_index=True)  # sorted; repeated stamps kept once
     depth_order = np.argsort(depth_ns, kind="stable")
-    matched = associate(
-        rgb_ns[rgb_first] / NS_PER_S, depth_ns[depth_order] / NS_PER_S, options.tolerance
-    )
+    rgb_s, depth_s = rgb_ns[rgb_first] / NS_PER_S, depth_ns[depth_order] / NS_PER_S
+    matched = associate(rgb_s, depth_s, options.tolerance)
     if len(matched) == 0:
         gap = np.abs(rgb_ns[:, None] - depth_ns[None, :]).min() / NS_PER_S
         raise InputError(
@@ -257,7 +258,8 @@ def _associate(
     pairs = np.stack([rgb_first[matched[:, 0]], depth_order[matched[:, 1]]], axis=1)
     diffs = np.abs(rgb_ns[pairs[:, 0]] - depth_ns[pairs[:, 1]]) / NS_PER_S
     provenance = {
-        "association": "greedy one-to-one by nearest header stamp (TUM associate.py)",
+        "association": "order-preserving one-to-one by header stamp, most pairs then least "
+        "summed |dt|",
         "association_tolerance_s": options.tolerance,
         "association_max_diff_s": float(diffs.max()),
         "rgb_messages": len(rgb_ns),
@@ -265,7 +267,9 @@ def _associate(
         "rgb_repeated_stamps_dropped": len(rgb_ns) - len(rgb_first),
         "associated": len(pairs),
     }
-    return pairs[:: options.stride][: options.max_frames], provenance
+    note = association_summary(rgb_s, depth_s, options.tolerance, len(matched),
+                               "RGB messages", "depth message")  # fmt: skip
+    return pairs[:: options.stride][: options.max_frames], provenance, note
 
 
 def _depth_scale(index: BagIndex, depth: ImageTopic, options: BagOptions) -> tuple[float, str]:

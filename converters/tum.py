@@ -1,9 +1,14 @@
 """TUM RGB-D folders (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``) → frame store.
 
 File formats follow the TUM RGB-D benchmark: list files of ``timestamp filename`` lines with ``#``
-comments, 16-bit depth PNGs with 5000 units per metre, and ``timestamp tx ty tz qx qy qz qw``
-ground truth (camera-to-world of the colour camera's optical centre). Folders in the ETH3D
-SLAM layout carry their pinhole intrinsics in ``calibration.txt`` (``fx fy cx cy``).
+comments, 16-bit depth PNGs with 5000 units per metre (other sensors' exports in this layout often
+use millimetres: ``depth_scale``), and ``timestamp tx ty tz qx qy qz qw`` ground truth
+(camera-to-world of the colour camera's optical centre). Folders in the ETH3D SLAM layout carry
+their pinhole intrinsics in ``calibration.txt`` (``fx fy cx cy``).
+
+The defaults give what the reference systems feed their SLAM: images of a freiburg1/2 camera are
+undistorted with its published coefficients, and the store records the border crop those
+systems use for the camera, which ``bgs run`` applies unless told otherwise.
 """
 
 from __future__ import annotations
@@ -19,19 +24,25 @@ import numpy as np
 from bgs_batch.errors import InputError
 from bgs_batch.geometry import interpolate_poses
 from bgs_batch.store import StoreMeta
-from converters.association import associate
+from converters.association import associate, association_summary
 from converters.pipeline import SourceFrame
 
 TUM_DEPTH_SCALE = 5000.0
 QUATERNION_NORM_TOLERANCE = 1e-2  # TUM prints 4 decimals; anything further off is corrupt
+TUM_IMAGE_SIZE = (640, 480)  # the size the published calibrations (and their crops) are for
+PLAUSIBLE_MEDIAN_DEPTH_M = (0.1, 20.0)  # RGB-D sensors; outside it, the depth scale is wrong
+DEPTH_SAMPLES = 3  # depth images whose median the scale check reads (first, middle, last)
 
 
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole intrinsics (fx, fy, cx, cy) and OpenCV distortion (k1, k2, p1, p2, k3)."""
+    """Pinhole intrinsics (fx, fy, cx, cy), OpenCV distortion (k1, k2, p1, p2, k3) and the border
+    (pixels per side) the reference systems crop from this camera's images, with their names."""
 
     intrinsics: tuple[float, float, float, float]
     distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    crop_edge: int = 0
+    crop_edge_source: str = ""
 
     @property
     def matrix(self) -> np.ndarray:
@@ -39,12 +50,18 @@ class Camera:
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-# Published calibration of the TUM RGB-D colour cameras (vision.in.tum.de, "File Formats").
+# Published calibration of the TUM RGB-D colour cameras (vision.in.tum.de, "File Formats"), and
+# the crops of the reference systems' TUM camera blocks: fr1 50 px and fr2 8 px in LoopSplat's
+# and the BayesianGS authors' configs; fr3, whose published images are already undistorted, 8 px
+# in SplaTAM's (LoopSplat crops fr3 by 50 px because it reuses the fr1 calibration there)
 TUM_CAMERAS: dict[str, Camera] = {
-    "freiburg1": Camera((517.3, 516.5, 318.6, 255.3), (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
-    "freiburg2": Camera((520.9, 521.0, 325.1, 249.7), (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
-    "freiburg3": Camera((535.4, 539.2, 320.1, 247.6)),
-}
+    "freiburg1": Camera((517.3, 516.5, 318.6, 255.3), (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
+                        50, "LoopSplat's and BayesianGS's TUM fr1 camera"),
+    "freiburg2": Camera((520.9, 521.0, 325.1, 249.7), (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
+                        8, "LoopSplat's and BayesianGS's TUM fr2 camera"),
+    "freiburg3": Camera((535.4, 539.2, 320.1, 247.6), crop_edge=8,
+                        crop_edge_source="SplaTAM's TUM fr3 camera"),
+}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -55,7 +72,8 @@ class TumOptions:
     gt_max_gap: float = 0.1  # s, max spacing of the two GT samples bracketing a frame
     intrinsics: tuple[float, float, float, float] | None = None  # overrides detection
     distortion: tuple[float, float, float, float, float] | None = None  # overrides detection
-    undistort: bool = False
+    undistort: bool = True  # with known, non-zero distortion; False stores the raw images
+    depth_scale: float = TUM_DEPTH_SCALE  # units per metre of the depth PNGs
     stride: int = 1
     max_frames: int | None = None
 
@@ -124,7 +142,8 @@ def _parse_float(text: str, path: Path, number: int) -> float:
 
 
 def detect_camera(folder: Path, options: TumOptions) -> tuple[Camera, dict[str, str]]:
-    """Pick intrinsics and distortion: options > ``calibration.txt`` > freiburg name."""
+    """Pick intrinsics and distortion: options > ``calibration.txt`` > freiburg name. The
+    reference crop comes with a published calibration only, not with ``--intrinsics``."""
     found: Camera | None = None
     source = ""
     calibration = folder / "calibration.txt"
@@ -148,7 +167,10 @@ def detect_camera(folder: Path, options: TumOptions) -> tuple[Camera, dict[str, 
         "intrinsics_source": "--intrinsics" if options.intrinsics else source,
         "distortion_source": "--distortion" if options.distortion else (source or "none (zero)"),
     }
-    return Camera(tuple(map(float, intrinsics)), tuple(map(float, distortion))), provenance
+    crop = found if found is not None and options.intrinsics is None else Camera(intrinsics)
+    camera = Camera(tuple(map(float, intrinsics)), tuple(map(float, distortion)),
+                    crop.crop_edge, crop.crop_edge_source)  # fmt: skip
+    return camera, provenance
 
 
 @dataclass(frozen=True)
@@ -201,15 +223,26 @@ def load_pair(
             f"{depth.shape[1]}x{depth.shape[0]}; TUM depth must be registered to colour pixel "
             "for pixel: use the dataset's registered depth"
         )
-    return undistort(rgb, depth) if undistort else (rgb, depth)
+    if undistort is None:
+        return rgb, depth
+    if rgb.shape[:2] != undistort.map_x.shape:
+        h, w = undistort.map_x.shape
+        raise InputError(
+            f"{rgb_path}: size {rgb.shape[1]}x{rgb.shape[0]} differs from the first frame's "
+            f"{w}x{h}; a store holds one camera: convert the parts separately or drop the odd "
+            "frames"
+        )
+    return undistort(rgb, depth)
 
 
 @dataclass(frozen=True)
 class TumPlan:
-    """Everything decided before decoding: which frames, their poses and the store metadata."""
+    """Everything decided before decoding: which frames, their poses, the store metadata and the
+    lines a user should read (what the association dropped, warnings)."""
 
     frames: list[SourceFrame]
     meta: StoreMeta
+    notes: tuple[str, ...] = ()
 
     @property
     def count(self) -> int:
@@ -217,7 +250,8 @@ class TumPlan:
 
 
 def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
-    """Read the list files, associate and interpolate GT, without decoding images.
+    """Read the list files, associate and interpolate GT; decode only the few images that fix
+    the image size and check the depth scale.
 
     Missing or unreadable images surface when their frame is decoded (naming the file), so
     ``--skip-bad-frames`` can drop them.
@@ -227,6 +261,8 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
         raise InputError(f"{folder} is not a folder; pass a TUM RGB-D sequence folder")
     if options.stride < 1 or (options.max_frames is not None and options.max_frames < 1):
         raise InputError("--stride and --max-frames must be at least 1")
+    if not options.depth_scale > 0:
+        raise InputError(f"--depth-scale must be positive, got {options.depth_scale}")
     rgb_t, rgb_names = read_file_list(folder / "rgb.txt")
     depth_t, depth_names = read_file_list(folder / "depth.txt")
     associated = associate(rgb_t, depth_t, options.tolerance)
@@ -235,6 +271,7 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
             f"{folder}: no RGB frame has a depth frame within {options.tolerance} s; check that "
             "rgb.txt and depth.txt belong to the same recording, or raise --tolerance"
         )
+    notes = [association_summary(rgb_t, depth_t, options.tolerance, len(associated))]
     pairs = associated[:: options.stride][: options.max_frames]
     stamps = rgb_t[pairs[:, 0]]
 
@@ -246,12 +283,22 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
     files = [(folder / rgb_names[i], folder / depth_names[j]) for i, j in pairs.tolist()]
 
     camera, camera_provenance = detect_camera(folder, options)
-    undistort = None
-    applied = options.undistort and any(camera.distortion)
-    if applied:
-        first = next((pair for pair in files if pair[0].is_file()), files[0])
-        h, w = _read_image(first[0], "rgb").shape[:2]
-        undistort = _Undistorter.build(camera, (w, h))
+    size = _image_size(files)
+    # a published calibration holds for the camera's own image size only
+    fits = options.distortion is not None or size == TUM_IMAGE_SIZE
+    applied = options.undistort and any(camera.distortion) and fits
+    undistort = _Undistorter.build(camera, size) if applied else None
+    crop_edge, crop_source = _reference_crop(camera, size)
+    median_depth = _median_depth(files, options.depth_scale)
+    if median_depth is not None and not (
+        PLAUSIBLE_MEDIAN_DEPTH_M[0] <= median_depth <= PLAUSIBLE_MEDIAN_DEPTH_M[1]
+    ):
+        notes.append(
+            f"warning: the depth images' median is {median_depth:.3g} m at --depth-scale "
+            f"{options.depth_scale:g} (units per metre); RGB-D sensors see "
+            f"{PLAUSIBLE_MEDIAN_DEPTH_M[0]:g}-{PLAUSIBLE_MEDIAN_DEPTH_M[1]:g} m: TUM uses 5000, "
+            "most RealSense, Azure Kinect and OpenLORIS exports 1000 (millimetres)"
+        )
 
     frames = [
         SourceFrame(
@@ -264,7 +311,7 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
     ]
     diffs = np.abs(rgb_t[pairs[:, 0]] - depth_t[pairs[:, 1]])
     provenance = {
-        "association": "greedy one-to-one by nearest timestamp (TUM associate.py)",
+        "association": "order-preserving one-to-one, most pairs then least summed |dt|",
         "association_tolerance_s": options.tolerance,
         "association_max_diff_s": float(diffs.max()),
         "rgb_listed": len(rgb_t),
@@ -272,10 +319,15 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
         "associated": len(associated),
         "stride": options.stride,
         "max_frames": options.max_frames,
-        "depth_scale_source": "TUM convention (5000 units per metre)",
+        "depth_scale_source": (
+            "TUM convention (5000 units per metre)"
+            if options.depth_scale == TUM_DEPTH_SCALE else "--depth-scale"
+        ),
+        "depth_median_m": median_depth,
         "undistort": bool(applied),
+        "crop_edge_source": crop_source,
         **camera_provenance,
-    }
+    }  # fmt: skip
     if poses is not None:
         provenance.update(
             gt_source="groundtruth.txt",
@@ -287,10 +339,40 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
         source_path=str(folder.resolve()),
         sequence=folder.resolve().name,
         intrinsics=camera.matrix,
-        depth_scale=TUM_DEPTH_SCALE,
+        depth_scale=options.depth_scale,
         distortion=camera.distortion,
         distortion_applied=bool(applied),
         has_gt=poses is not None,
+        crop_edge=crop_edge,
         provenance=provenance,
     )
-    return TumPlan(frames, meta)
+    return TumPlan(frames, meta, tuple(notes))
+
+
+def _image_size(files: list[tuple[Path, Path]]) -> tuple[int, int]:
+    """(width, height) of the first readable colour image (the store checks the others)."""
+    first = next((pair for pair in files if pair[0].is_file()), files[0])
+    h, w = _read_image(first[0], "rgb").shape[:2]
+    return w, h
+
+
+def _reference_crop(camera: Camera, size: tuple[int, int]) -> tuple[int, str]:
+    """The border the reference systems crop for this camera, and why (0 when there is none)."""
+    if not camera.crop_edge:
+        return 0, "none: no reference crop for this camera"
+    if size != TUM_IMAGE_SIZE:
+        native, actual = "x".join(map(str, TUM_IMAGE_SIZE)), "x".join(map(str, size))
+        return 0, f"none: {camera.crop_edge_source} crops {native} images, these are {actual}"
+    return camera.crop_edge, camera.crop_edge_source
+
+
+def _median_depth(files: list[tuple[Path, Path]], scale: float) -> float | None:
+    """Median valid depth (m) of a few depth images spread over the sequence, None if none of
+    them can be read (those frames fail, named, when they are converted)."""
+    picks = np.linspace(0, len(files) - 1, min(DEPTH_SAMPLES, len(files))).round().astype(int)
+    values = []
+    for k in sorted(set(picks.tolist())):
+        depth = cv2.imread(str(files[k][1]), cv2.IMREAD_UNCHANGED)
+        if depth is not None and depth.dtype == np.uint16 and np.any(depth):
+            values.append(float(np.median(depth[depth > 0])) / scale)
+    return float(np.median(values)) if values else None

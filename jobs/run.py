@@ -4,7 +4,8 @@ Job directory::
 
     job.json         input store (path, SHA-256), resolved configuration, package version
     lock             present while a process runs the job (host and PID)
-    config.json      the resolved configuration (preset + overrides)
+    config.json      the resolved configuration (preset + overrides + the store's recommended
+                     crop) as ``settings``, and where store-derived values came from (``sources``)
     log.jsonl        one event per frame: pose, keyframe decision and scores, losses, timings
                      (``TIMING_FIELDS``: seconds since the job started, and per stage)
     trajectory.txt   estimated camera-to-world poses, TUM format
@@ -29,7 +30,7 @@ import numba
 import numpy as np
 import torch
 
-from bgs_batch.config import Config
+from bgs_batch.config import Config, check_crop, for_store
 from bgs_batch.metrics import ate
 from bgs_batch.slam import Slam
 from bgs_batch.store import FrameStore
@@ -80,19 +81,21 @@ def run_job(
 ) -> RunSummary:
     """Run SLAM over the store (or its first `max_frames`) and write the job directory.
 
-    Refuses a job directory locked by a live process, or made for another store or settings
-    (unless `force`).
+    Settings the config leaves to the store (``crop_edge`` None) take the store's value. Refuses
+    a job directory locked by a live process, or made for another store or settings (unless
+    `force`).
     """
     set_threads(cfg.threads)
-    with FrameStore(store_path):  # validate before taking the job directory
-        pass
+    with FrameStore(store_path) as store:  # validate before taking the job directory
+        cfg, sources = for_store(cfg, store.crop_edge, store_path.name)
+        check_crop(cfg.crop_edge, store.width, store.height)
     job_dir.mkdir(parents=True, exist_ok=True)
     with job_lock(job_dir):
         record = job_record(store_path, cfg.to_dict(), max_frames, read_record(job_dir))
         check_or_write_record(job_dir, record, force)
         (job_dir / ERROR_FILE).unlink(missing_ok=True)
         try:
-            return _run(store_path, job_dir, cfg, max_frames, on_frame)
+            return _run(store_path, job_dir, cfg, sources, max_frames, on_frame)
         except BaseException as err:  # recorded for `bgs status`, then re-raised
             error = {"type": type(err).__name__, "message": str(err)}
             (job_dir / ERROR_FILE).write_text(json.dumps(error))
@@ -103,12 +106,14 @@ def _run(
     store_path: Path,
     job_dir: Path,
     cfg: Config,
+    sources: dict[str, str],
     max_frames: int | None,
     on_frame: Callable[[dict[str, Any]], None] | None,
 ) -> RunSummary:
     if (job_dir / SUMMARY_FILE).exists():  # finished before: nothing to do (array reruns)
         return RunSummary(**json.loads((job_dir / SUMMARY_FILE).read_text()))
-    (job_dir / "config.json").write_text(cfg.to_json())
+    document = {"settings": cfg.to_dict(), "sources": sources}
+    (job_dir / "config.json").write_text(json.dumps(document, indent=2, sort_keys=True))
     with FrameStore(store_path) as store, stop_requests() as stop:
         n = len(store) if max_frames is None else min(max_frames, len(store))
         slam = Slam(cfg, store.intrinsics, job_dir / "submaps")

@@ -93,9 +93,9 @@ class FinishedJob:
 
     @cached_property
     def config(self) -> Config:
-        """The run's resolved settings (job.json, else config.json)."""
+        """The run's resolved settings (job.json, else config.json; flat in older jobs)."""
         data = self.record["config"] if self.record else self._json(CONFIG_FILE)
-        return config_from_dict(data)
+        return config_from_dict(data.get("settings", data))
 
     @cached_property
     def summary(self) -> dict[str, Any]:

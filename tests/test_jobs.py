@@ -247,3 +247,27 @@ def test_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch):
     assert sorted((tmp_path / CHECKPOINT_DIR).iterdir()) == [first]  # no temp file left
     frames, state = load_latest(tmp_path)
     assert frames == 2 and torch.equal(state["x"], torch.ones(3))
+
+
+def test_the_store_s_recommended_crop_is_applied_unless_set(tmp_path):
+    folder = make_tum_folder(tmp_path / "src", frames=2, size=(640, 480))  # freiburg1: 50 px
+    plan = plan_tum(folder, TumOptions())
+    store = write_store(plan.frames, tmp_path / "fr1.h5", plan.meta).path
+
+    def run(job: str, *sets: str):
+        args = ["-q", "run", str(store), "--job-dir", str(tmp_path / job), "--max-frames", "1",
+                "--no-export", *sum((["--set", s] for s in [*TINY, *sets]), [])]  # fmt: skip
+        return CliRunner().invoke(main, args)
+
+    assert run("default").exit_code == 0
+    config = json.loads((tmp_path / "default" / "config.json").read_text())
+    assert config["settings"]["crop_edge"] == 50
+    assert config["sources"]["crop_edge"].startswith("the store's recommended crop (fr1.h5")
+    record = json.loads((tmp_path / "default" / "job.json").read_text())
+    assert record["config"]["crop_edge"] == 50  # exports and resumes use the resolved value
+    assert run("set", "crop_edge=0").exit_code == 0
+    config = json.loads((tmp_path / "set" / "config.json").read_text())
+    assert config["settings"]["crop_edge"] == 0 and config["sources"]["crop_edge"].startswith("set")
+    too_big = run("big", "crop_edge=240")
+    assert too_big.exit_code == 2 and "leaves nothing of the 640x480 images" in too_big.output
+    assert not (tmp_path / "big").exists()
