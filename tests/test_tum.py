@@ -275,7 +275,8 @@ def test_depth_scale_is_stored_and_an_implausible_median_warns(tum_folder, tmp_p
     result = convert(tum_folder, tmp_path / "mm.h5", "--depth-scale", "1000")
     assert result.exit_code == 0, result.output
     with FrameStore(tmp_path / "mm.h5") as store:
-        assert store.depth_scale == 1000 and store.provenance["depth_scale_source"] == "--depth-scale"
+        assert store.depth_scale == 1000
+        assert store.provenance["depth_scale_source"] == "--depth-scale"
         assert store.read_depth(0).max() == pytest.approx(store.read_depth_raw(0).max() / 1000)
     assert "warning" not in result.output
     wrong = convert(tum_folder, tmp_path / "wrong.h5", "--depth-scale", "100")
