@@ -366,6 +366,7 @@ class _Renderer:
         room = np.stack([half * [-1.0, -1.0, 0.0], half])
         self.scene = o3d.t.geometry.RaycastingScene()
         boxes = [room, *_furniture_boxes(config, rng)]
+        self.bounds = np.asarray(boxes, np.float64)  # (box, lo/hi, axis)
         for lo, hi in boxes:
             box = o3d.geometry.TriangleMesh.create_box(*(hi - lo)).translate(lo)
             self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(box))
@@ -379,17 +380,18 @@ class _Renderer:
     def render(self, pose: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """RGB (H, W, 3) uint8 and depth (H, W) uint16 seen from camera-to-world `pose`."""
         cfg = self.config
-        dirs = self.rays_cam @ pose[:3, :3].T.astype(np.float32)
+        rotation = pose[:3, :3].astype(np.float32)
+        # elementwise, not a BLAS product: the same rays on every CPU
+        dirs = sum(self.rays_cam[..., k, None] * rotation[:, k] for k in range(3))
         origin = np.broadcast_to(pose[:3, 3].astype(np.float32), dirs.shape)
         hit = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([origin, dirs], -1)))
-        z = hit["t_hit"].numpy()  # the rays' camera z components are 1, so t is the depth
-        hit_ok = np.isfinite(z)
-        z = np.where(hit_ok, z, np.float32(0))
+        hit_ok = np.isfinite(hit["t_hit"].numpy())
         normal = hit["primitive_normals"].numpy()
         axis = np.abs(normal).argmax(-1)
-        face = 6 * hit["geometry_ids"].numpy().astype(np.int64) + 2 * axis
-        face += np.take_along_axis(normal, axis[..., None], -1)[..., 0] > 0
-        face = np.where(hit_ok, face, 0)
+        box = hit["geometry_ids"].numpy().astype(np.int64)
+        outward = np.take_along_axis(normal, axis[..., None], -1)[..., 0] > 0
+        face = np.where(hit_ok, 6 * box + 2 * axis + outward, 0)
+        z = self._distance(box, outward, axis, origin, dirs, hit_ok)
         point = origin + z[..., None] * dirs
         normal_dot_ray = np.einsum("...i,...i->...", normal, dirs) / self.ray_length
         cos_incidence = np.abs(normal_dot_ray)
@@ -408,6 +410,22 @@ class _Renderer:
         rgb = np.clip(np.rint(colour), 0, 255).astype(np.uint8)
         valid = hit_ok & (cos_incidence >= cos_grazing)
         return rgb, self._depth(z.astype(np.float64), valid, rng)
+
+    def _distance(
+        self, box: np.ndarray, outward: np.ndarray, axis: np.ndarray, origin: np.ndarray,
+        dirs: np.ndarray, hit_ok: np.ndarray,
+    ) -> np.ndarray:  # fmt: skip
+        """Distance along each ray to the axis-aligned face Embree found (0 where none): the
+        rays' camera z components are 1, so it is the depth. Computed here in float64 rather
+        than taken from Embree, whose kernels (and their reciprocal approximations) differ per
+        instruction set, so that a seed gives the same depth images on every CPU."""
+        box = np.where(hit_ok, box, 0)
+        plane = self.bounds[box, outward.astype(np.int64), axis]
+        along = np.take_along_axis(dirs, axis[..., None], -1)[..., 0].astype(np.float64)
+        start = np.take_along_axis(origin, axis[..., None], -1)[..., 0].astype(np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            distance = (plane - start) / along
+        return np.where(hit_ok, distance, 0.0).astype(np.float32)
 
     def _albedo(
         self, face: np.ndarray, u: np.ndarray, v: np.ndarray, footprint: np.ndarray
