@@ -185,7 +185,8 @@ def convert_scannet(ctx: click.Context, path: Path, output: Path | None, **optio
     The folder holds color/*.jpg, depth/*.png (mm), pose/*.txt (camera-to-world) and
     intrinsic/intrinsic_depth.txt. Colour is resized to the depth resolution (area averaging) and
     the depth intrinsics are stored; invalid (-inf) poses become NaN and the frames are kept.
-    Timestamps are frame index / 30 Hz, as exports carry none.
+    Timestamps are frame index / 30 Hz, as exports carry none. The store records the reference
+    systems' 12 px border crop for 640x480 frames, which `bgs run` applies by default.
 
     \b
     Example:

@@ -28,6 +28,10 @@ SCANNET_FPS = 30.0  # exports carry no timestamps (so .sens ones are not used ei
 SCANNET_DEPTH_SCALE = 1000.0  # depth PNGs in millimetres ("depth shift")
 COLOR_RESIZE = cv2.INTER_AREA  # downscaling 1296x968 -> 640x480 without aliasing
 SENS_SUFFIX = ".sens"
+# LoopSplat's and the BayesianGS authors' ScanNet camera block crops 12 px per side of the
+# 640x480 depth-resolution frames
+SCANNET_CROP_EDGE = 12
+SCANNET_SIZE = (640, 480)
 DEPTH_INTRINSICS = Path("intrinsic") / "intrinsic_depth.txt"
 
 
@@ -56,6 +60,7 @@ class _Source:
     intrinsics: np.ndarray
     depth_scale: float
     provenance: dict[str, object]
+    size: tuple[int, int] | None  # (width, height) of the stored frames; None: unknown
 
 
 def plan_scannet(path: Path, options: ScanNetOptions) -> ScanNetPlan:
@@ -73,6 +78,10 @@ def plan_scannet(path: Path, options: ScanNetOptions) -> ScanNetPlan:
             "(color/, depth/, pose/, intrinsic/)"
         )
     frames = source.frames
+    if source.size == SCANNET_SIZE:
+        crop_edge, crop_source = SCANNET_CROP_EDGE, "LoopSplat's and BayesianGS's ScanNet camera"
+    else:
+        crop_edge, crop_source = 0, "none: the reference crop is for 640x480 frames"
     provenance = {
         **source.provenance,
         "colour_resize": "to the depth resolution, cv2.INTER_AREA",
@@ -82,6 +91,7 @@ def plan_scannet(path: Path, options: ScanNetOptions) -> ScanNetPlan:
         "gt_frames": sum(frame.pose_gt is not None for frame in frames),
         "stride": options.stride,
         "max_frames": options.max_frames,
+        "crop_edge_source": crop_source,
     }
     meta = StoreMeta(
         source_format="scannet",
@@ -90,6 +100,7 @@ def plan_scannet(path: Path, options: ScanNetOptions) -> ScanNetPlan:
         intrinsics=source.intrinsics,
         depth_scale=source.depth_scale,
         has_gt=True,
+        crop_edge=crop_edge,
         provenance=provenance,
     )
     return ScanNetPlan(frames, len(frames), meta)
@@ -139,7 +150,8 @@ def _plan_sens(path: Path, options: ScanNetOptions) -> _Source:
         "frames_in_source": len(records),
         "depth_scale_source": ".sens header depth shift",
     }
-    return _Source(frames, header.depth_intrinsics[:3, :3], header.depth_shift, provenance)
+    return _Source(frames, header.depth_intrinsics[:3, :3], header.depth_shift, provenance,
+                   tuple(header.depth_size))  # fmt: skip
 
 
 def _load_sens_frame(
@@ -181,7 +193,9 @@ def _plan_folder(folder: Path, options: ScanNetOptions) -> _Source:
         "frames_in_source": len(colors),
         "depth_scale_source": "ScanNet convention (depth PNGs in millimetres)",
     }
-    return _Source(frames, intrinsics, SCANNET_DEPTH_SCALE, provenance)
+    first_depth = cv2.imread(str(folder / "depth" / f"{colors[0].stem}.png"), cv2.IMREAD_UNCHANGED)
+    size = None if first_depth is None else (first_depth.shape[1], first_depth.shape[0])
+    return _Source(frames, intrinsics, SCANNET_DEPTH_SCALE, provenance, size)
 
 
 def _read_matrix(path: Path) -> np.ndarray:

@@ -22,15 +22,15 @@ FRAMES = 12  # two-digit names check the natural sort
 INVALID_POSE = 3
 
 
-def make_scene(seed: int = 0) -> dict:
+def make_scene(seed: int = 0, frames_count: int = FRAMES, depth_size=DEPTH_SIZE) -> dict:
     """Random smooth frames: JPEG colour bytes, uint16 depth, float32 poses and intrinsics."""
     rng = np.random.default_rng(seed)
     w, h = COLOR_SIZE
     frames = []
-    for i in range(FRAMES):
+    for i in range(frames_count):
         coarse = rng.integers(0, 256, (h // 10, w // 10, 3), np.uint8)
         color = cv2.imencode(".jpg", cv2.resize(coarse, COLOR_SIZE))[1].tobytes()
-        depth = rng.integers(500, 4000, DEPTH_SIZE[::-1]).astype(np.uint16)
+        depth = rng.integers(500, 4000, depth_size[::-1]).astype(np.uint16)
         depth[0, :5] = 0
         angle = 0.1 * i
         pose = pose_matrix([0.1 * i, 0.0, 1.5], [0, np.sin(angle / 2), 0, np.cos(angle / 2)])
@@ -112,6 +112,19 @@ def test_export_folder_and_sens_give_identical_stores(scene, tmp_path):
             assert np.array_equal(a.read_rgb(i), rgb) and np.array_equal(b.read_rgb(i), rgb)
             assert np.array_equal(a.read_depth_raw(i), depth)
             assert np.array_equal(b.read_depth_raw(i), depth)
+
+
+def test_the_reference_crop_is_recorded_for_640x480_frames(scene, tmp_path):
+    full = make_scene(frames_count=2, depth_size=(640, 480))
+    for source in (write_export(tmp_path / "scene0001_00", full),
+                   write_scene_sens(tmp_path / "scene0001_00.sens", full)):  # fmt: skip
+        out = tmp_path / f"{source.name}.h5"
+        assert convert(source, out).exit_code == 0
+        with FrameStore(out) as store:
+            assert store.crop_edge == 12 and "ScanNet" in store.provenance["crop_edge_source"]
+    assert convert(write_export(tmp_path / "small", scene), tmp_path / "small.h5").exit_code == 0
+    with FrameStore(tmp_path / "small.h5") as store:  # 80x60 stand-ins: no reference crop
+        assert store.crop_edge == 0
 
 
 def test_stride_and_max_frames(scene, tmp_path):
