@@ -86,24 +86,24 @@ def run_job(
     `force`).
     """
     set_threads(cfg.threads)
-    with FrameStore(store_path) as store:  # validate before taking the job directory
+    with FrameStore(store_path) as store:  # validated before the job directory is taken
         cfg, sources = for_store(cfg, store.crop_edge, store_path.name)
         check_crop(cfg.crop_edge, store.width, store.height)
-    job_dir.mkdir(parents=True, exist_ok=True)
-    with job_lock(job_dir):
-        record = job_record(store_path, cfg.to_dict(), max_frames, read_record(job_dir))
-        check_or_write_record(job_dir, record, force)
-        (job_dir / ERROR_FILE).unlink(missing_ok=True)
-        try:
-            return _run(store_path, job_dir, cfg, sources, max_frames, on_frame)
-        except BaseException as err:  # recorded for `bgs status`, then re-raised
-            error = {"type": type(err).__name__, "message": str(err)}
-            (job_dir / ERROR_FILE).write_text(json.dumps(error))
-            raise
+        job_dir.mkdir(parents=True, exist_ok=True)
+        with job_lock(job_dir):
+            record = job_record(store_path, cfg.to_dict(), max_frames, read_record(job_dir))
+            check_or_write_record(job_dir, record, force)
+            (job_dir / ERROR_FILE).unlink(missing_ok=True)
+            try:
+                return _run(store, job_dir, cfg, sources, max_frames, on_frame)
+            except BaseException as err:  # recorded for `bgs status`, then re-raised
+                error = {"type": type(err).__name__, "message": str(err)}
+                (job_dir / ERROR_FILE).write_text(json.dumps(error))
+                raise
 
 
 def _run(
-    store_path: Path,
+    store: FrameStore,
     job_dir: Path,
     cfg: Config,
     sources: dict[str, str],
@@ -114,7 +114,7 @@ def _run(
         return RunSummary(**json.loads((job_dir / SUMMARY_FILE).read_text()))
     document = {"settings": cfg.to_dict(), "sources": sources}
     (job_dir / "config.json").write_text(json.dumps(document, indent=2, sort_keys=True))
-    with FrameStore(store_path) as store, stop_requests() as stop:
+    with stop_requests() as stop:
         n = len(store) if max_frames is None else min(max_frames, len(store))
         slam = Slam(cfg, store.intrinsics, job_dir / "submaps")
         done, previous_seconds = _resume(slam, store, job_dir)
