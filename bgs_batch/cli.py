@@ -465,6 +465,8 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
     Writes config.json, log.jsonl (one event per frame: pose, keyframe decision with both
     surprise scores, losses), trajectory.txt (TUM format), submaps/ and summary.json into
     JOB_DIR. Ground truth in the store is only used afterwards, for the ATE in the summary.
+    The store's recommended border crop (the reference systems' for its camera; `bgs inspect`
+    shows it) is applied unless --set crop_edge=N says otherwise.
     Checkpoints every `checkpoint_every` frames; SIGTERM/SIGUSR1/Ctrl-C checkpoint and exit 75,
     and running the same command again resumes. When the run is complete, its outputs are
     exported into JOB_DIR/outputs (once; `--no-export` skips this, `bgs export` redoes it).
