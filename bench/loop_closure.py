@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from bgs_batch.config import load_config
-from bgs_batch.loop_closure.evaluation import accepted_loops, is_true_loop, submap_frames
+from bgs_batch.slam.loop_closure.evaluation import accepted_loops, is_true_loop, submap_frames
 from bgs_batch.store import FrameStore
 from converters.pipeline import write_store
 from converters.synthetic import SynthConfig, synthesize

@@ -157,7 +157,7 @@ class KeyframeConfig:
 # --- loop closure (issue P8) -------------------------------------------------------------------
 @dataclass
 class LoopClosureConfig:
-    """Loop closure over submaps (LoopSplat §5; `bgs_batch.loop_closure`).
+    """Loop closure over submaps (LoopSplat §5; `bgs_batch.slam.loop_closure`).
 
     At every submap switch: ORB bag-of-words place recognition over keyframes (the vocabulary is
     learnt online, no weights are downloaded), geometric verification (3-D/3-D RANSAC on depth),

@@ -2,7 +2,7 @@
 
 Conventions (DESIGN.md §8, as LoopSplat/BayesianGS-SLAM report them):
 - PSNR: 10·log10(1 / MSE) over the whole [H,W,3] image, data range 1; identical images give inf.
-- SSIM: the 3DGS Gaussian-window SSIM (11×11, σ 1.5, zero padding) of `bgs_batch.losses.ssim`.
+- SSIM: the 3DGS Gaussian-window SSIM (11×11, σ 1.5, zero padding) of `bgs_batch.slam.losses.ssim`.
 - MS-SSIM: Wang et al. 2003 as in pytorch-msssim (valid 11×11 Gaussian windows, σ 1.5, five
   scales with weights 0.0448, 0.2856, 0.3001, 0.2363, 0.1333, 2×2 average pooling between scales,
   negative terms clamped to 0, mean over channels); the smaller image side must exceed 160 px.
@@ -16,7 +16,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from bgs_batch.losses import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, ssim
+from bgs_batch.slam.losses import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, ssim
 
 MS_SSIM_WEIGHTS = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
 MS_SSIM_MIN_SIDE = (SSIM_WINDOW - 1) * 2 ** (len(MS_SSIM_WEIGHTS) - 1)  # 160 px

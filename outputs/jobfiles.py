@@ -17,7 +17,7 @@ import torch
 
 from bgs_batch.config import Config, config_from_dict
 from bgs_batch.errors import InputError
-from bgs_batch.gaussian_map import PARAMS
+from bgs_batch.slam.gaussian_map import PARAMS
 from bgs_batch.store import FrameStore
 from jobs.jobdir import JOB_FILE, lock_owner_alive
 from jobs.run import LOG_FILE, SUMMARY_FILE

@@ -30,7 +30,8 @@ import torch
 
 from bgs_batch.config import Config
 from bgs_batch.errors import InputError
-from bgs_batch.frames import (
+from bgs_batch.render import Camera, Gaussians, render
+from bgs_batch.slam.frames import (
     Level,
     block_mean,
     camera_for,
@@ -39,10 +40,9 @@ from bgs_batch.frames import (
     repeat_blocks,
     to_level,
 )
-from bgs_batch.losses import predictive_variance
-from bgs_batch.mapping import Keyframe
-from bgs_batch.render import Camera, Gaussians, render
-from bgs_batch.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.losses import predictive_variance
+from bgs_batch.slam.mapping import Keyframe
+from bgs_batch.slam.sensor_noise import SensorNoiseNet
 from bgs_batch.store import Frame, FrameStore
 from outputs.jobfiles import FinishedJob
 

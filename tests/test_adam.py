@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from bgs_batch.adam import Adam
 from bgs_batch.config import MappingConfig
-from bgs_batch.gaussian_map import ADAM_EPS, PARAMS, GaussianMap
+from bgs_batch.slam.adam import Adam
+from bgs_batch.slam.gaussian_map import ADAM_EPS, PARAMS, GaussianMap
 
 STEPS = 7
 SHAPES = ((5, 3), (4,), ())

@@ -5,7 +5,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from bgs_batch.blur import blur_planes, gaussian_window
+from bgs_batch.slam.blur import blur_planes, gaussian_window
 
 
 def conv2d_blur(images: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:

@@ -10,14 +10,14 @@ import torch
 
 from bgs_batch.config import LoopClosureConfig, load_config
 from bgs_batch.geometry import quat_to_matrix
-from bgs_batch.loop_closure import inject_drift, place_recognition, vocabulary
-from bgs_batch.loop_closure.closer import LoopCloser, LoopClosureError
-from bgs_batch.loop_closure.correction import load_raw, transform_params, write_correction
-from bgs_batch.loop_closure.features import KeyframeFeatures, hamming, match
-from bgs_batch.loop_closure.icp import point_to_plane
-from bgs_batch.loop_closure.pose_graph import Edge, information, optimise, spread_loop
-from bgs_batch.loop_closure.verification import verify
 from bgs_batch.render import se3_exp
+from bgs_batch.slam.loop_closure import inject_drift, place_recognition, vocabulary
+from bgs_batch.slam.loop_closure.closer import LoopCloser, LoopClosureError
+from bgs_batch.slam.loop_closure.correction import load_raw, transform_params, write_correction
+from bgs_batch.slam.loop_closure.features import KeyframeFeatures, hamming, match
+from bgs_batch.slam.loop_closure.icp import point_to_plane
+from bgs_batch.slam.loop_closure.pose_graph import Edge, information, optimise, spread_loop
+from bgs_batch.slam.loop_closure.verification import verify
 
 
 def translation(t) -> np.ndarray:
@@ -182,7 +182,7 @@ def test_drift_moves_the_new_submap_rigidly_not_the_velocity(tmp_path):
     (before the fix it also carried the 2° and 2 cm once more, which lost tracking on the
     synthetic loop at the paper's sensor rate). The reference survives a checkpoint."""
     from bgs_batch.slam import Slam
-    from bgs_batch.tracking import constant_velocity
+    from bgs_batch.slam.tracking import constant_velocity
 
     cfg = load_config("cpu", ["loop_closure.enabled=false", "loop_closure.inject_drift_deg=2.0",
                               "loop_closure.inject_drift_m=0.02"])  # fmt: skip
@@ -283,7 +283,7 @@ def test_hamming_distance_counts_differing_bits():
     a = np.zeros((1, 32), np.uint8)
     b = np.zeros((2, 32), np.uint8)
     b[0, 0], b[1, :] = 0b1011, 255
-    from bgs_batch.loop_closure.features import bits
+    from bgs_batch.slam.loop_closure.features import bits
 
     np.testing.assert_array_equal(hamming(bits(a), bits(b)), [[3, 256]])
 

@@ -4,9 +4,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from bgs_batch.blur import gaussian_window
-from bgs_batch.loss_kernels import fused_ssim, l1_nll_terms, weighted_normalised_l1
-from bgs_batch.losses import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
+from bgs_batch.slam.blur import gaussian_window
+from bgs_batch.slam.loss_kernels import fused_ssim, l1_nll_terms, weighted_normalised_l1
+from bgs_batch.slam.losses import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
 
 
 def scene(dtype, h=13, w=17, seed=0):

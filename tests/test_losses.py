@@ -8,9 +8,9 @@ import torch
 import torch.nn.functional as F
 
 from bgs_batch.config import KeyframeConfig, TrackingConfig, UncertaintyConfig
-from bgs_batch.keyframes import KeyframeSelector
-from bgs_batch.loss_kernels import l1_nll_terms
-from bgs_batch.losses import (
+from bgs_batch.slam.keyframes import KeyframeSelector
+from bgs_batch.slam.loss_kernels import l1_nll_terms
+from bgs_batch.slam.losses import (
     isotropy_loss,
     mapping_loss,
     predictive_variance,
@@ -18,7 +18,7 @@ from bgs_batch.losses import (
     surprise_scores,
     tracking_loss,
 )
-from bgs_batch.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.sensor_noise import SensorNoiseNet
 
 
 def test_predictive_variance_floors_and_unobserved_fill():

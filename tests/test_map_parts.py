@@ -5,13 +5,13 @@ import pytest
 import torch
 
 from bgs_batch.config import MappingConfig, SeedingConfig, SubmapConfig
-from bgs_batch.frames import Level, block_mean, downsample, repeat_blocks
-from bgs_batch.gaussian_map import GaussianMap
 from bgs_batch.geometry import pose_matrix
 from bgs_batch.metrics import align_rigid, ate
 from bgs_batch.render import Camera
-from bgs_batch.seeding import backproject, far_from, keyframe_seed_pixels, submap_seed_pixels
-from bgs_batch.slam import exceeds_motion
+from bgs_batch.slam.frames import Level, block_mean, downsample, repeat_blocks
+from bgs_batch.slam.gaussian_map import GaussianMap
+from bgs_batch.slam.seeding import backproject, far_from, keyframe_seed_pixels, submap_seed_pixels
+from bgs_batch.slam.submaps import exceeds_motion
 from outputs.trajectory import read_tum, write_tum
 
 K = np.array([[50.0, 0, 15.5], [0, 50.0, 11.5], [0, 0, 1]])

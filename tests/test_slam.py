@@ -99,10 +99,10 @@ def test_refining_a_frozen_submap_fits_only_the_uncertainties(store30, tmp_path)
     """uncertainty.refine_passes: r_i and the sensor network learn by NLL_C + NLL_D over the
     submap's keyframes (the total falls); geometry and colours stay bit for bit; 0 passes is
     a no-op."""
-    from bgs_batch.loss_kernels import l1_nll_terms
-    from bgs_batch.losses import predictive_variance
     from bgs_batch.render import render
     from bgs_batch.slam import Slam
+    from bgs_batch.slam.loss_kernels import l1_nll_terms
+    from bgs_batch.slam.losses import predictive_variance
     from bgs_batch.store import FrameStore
 
     store = FrameStore(store30)
@@ -150,8 +150,8 @@ def test_pivot_turns_the_camera_about_a_point_in_the_scene(store30, tmp_path):
     traded for a sideways shift)."""
     from bgs_batch.render import se3_exp
     from bgs_batch.slam import Slam
+    from bgs_batch.slam.tracking import Tracker
     from bgs_batch.store import FrameStore
-    from bgs_batch.tracking import Tracker
 
     store = FrameStore(store30)
     base = ["mapping.downscale=1", "tracking.downscale=1"]

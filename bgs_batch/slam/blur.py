@@ -3,7 +3,7 @@
 PyTorch's CPU depthwise ``conv2d`` took ~180 ms per SSIM forward+backward at 320×240 (two
 thirds of a mapping iteration); these loops over contiguous rows vectorise and take a few ms.
 With a symmetric window and zero padding the blur is a symmetric linear operator, so its
-backward is the same blur applied to the upstream gradient (`bgs_batch.loss_kernels`' SSIM).
+backward is the same blur applied to the upstream gradient (`bgs_batch.slam.loss_kernels`' SSIM).
 """
 
 from __future__ import annotations

@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from bgs_batch.adam import Adam
 from bgs_batch.config import MappingConfig
 from bgs_batch.geometry import kd_tree
 from bgs_batch.render import Gaussians
+from bgs_batch.slam.adam import Adam
 
 PARAMS = ("means", "log_scales", "quats", "opacity_logits", "colors", "uncertainty_logits")
 UNCERTAINTY_KEY = PARAMS[-1]  # r_i, the only parameter the end-of-run refinement changes

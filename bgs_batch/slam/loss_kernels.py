@@ -6,7 +6,7 @@ the render itself. Each kernel here makes one pass over the pixels (rows in para
 backward one more. Sums are accumulated per image row in float64 and the rows are added in
 order, so results never depend on the thread count.
 
-The formulas are those of :mod:`bgs_batch.losses`, which documents them with the paper's
+The formulas are those of :mod:`bgs_batch.slam.losses`, which documents them with the paper's
 equation numbers; ``tests/test_loss_kernels.py`` checks every value and gradient against
 float64 PyTorch autograd of the plain formulas.
 """
@@ -17,7 +17,7 @@ import numba
 import numpy as np
 import torch
 
-from bgs_batch.blur import blur_planes
+from bgs_batch.slam.blur import blur_planes
 
 HALF = 0.5
 

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import torch
 
-from bgs_batch.blur import gaussian_window
 from bgs_batch.config import TrackingConfig, UncertaintyConfig
-from bgs_batch.loss_kernels import fused_ssim, l1_nll_terms, weighted_normalised_l1
+from bgs_batch.slam.blur import gaussian_window
+from bgs_batch.slam.loss_kernels import fused_ssim, l1_nll_terms, weighted_normalised_l1
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5

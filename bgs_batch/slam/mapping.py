@@ -15,20 +15,20 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from bgs_batch.adam import Adam
 from bgs_batch.config import Config
-from bgs_batch.frames import Level
-from bgs_batch.gaussian_map import UNCERTAINTY_KEY, GaussianMap
-from bgs_batch.loss_kernels import l1_nll_terms
-from bgs_batch.losses import mapping_loss, predictive_variance
 from bgs_batch.render import Gaussians, render
-from bgs_batch.seeding import (
+from bgs_batch.slam.adam import Adam
+from bgs_batch.slam.frames import Level
+from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY, GaussianMap
+from bgs_batch.slam.loss_kernels import l1_nll_terms
+from bgs_batch.slam.losses import mapping_loss, predictive_variance
+from bgs_batch.slam.seeding import (
     backproject,
     far_from,
     keyframe_seed_pixels,
     submap_seed_pixels,
 )
-from bgs_batch.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.sensor_noise import SensorNoiseNet
 
 
 @dataclass

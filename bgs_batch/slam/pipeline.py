@@ -17,41 +17,18 @@ from typing import Any
 import numpy as np
 import torch
 
-from bgs_batch.adam import Adam
-from bgs_batch.config import Config, SubmapConfig
-from bgs_batch.frames import Level, camera_for, crop_and_clip, downsample, to_level
-from bgs_batch.gaussian_map import UNCERTAINTY_KEY, GaussianMap
-from bgs_batch.geometry import euler_zyx_deg, rotation_angle_deg
-from bgs_batch.keyframes import KeyframeSelector
-from bgs_batch.loop_closure import LoopCloser, inject_drift  # issue P8
-from bgs_batch.loop_closure.correction import load_mapped, write_uncertainty
-from bgs_batch.mapping import Keyframe, Mapper
-from bgs_batch.sensor_noise import SensorNoiseNet
+from bgs_batch.config import Config
+from bgs_batch.slam.adam import Adam
+from bgs_batch.slam.frames import Level, camera_for, crop_and_clip, downsample, to_level
+from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY, GaussianMap
+from bgs_batch.slam.keyframes import KeyframeSelector
+from bgs_batch.slam.loop_closure import LoopCloser, inject_drift  # issue P8
+from bgs_batch.slam.loop_closure.correction import load_mapped, write_uncertainty
+from bgs_batch.slam.mapping import Keyframe, Mapper
+from bgs_batch.slam.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.submaps import SubmapRecord, exceeds_motion
+from bgs_batch.slam.tracking import Tracker, constant_velocity
 from bgs_batch.store import Frame
-from bgs_batch.tracking import Tracker, constant_velocity
-
-
-def exceeds_motion(first_c2w: np.ndarray, c2w: np.ndarray, cfg: SubmapConfig) -> bool:
-    """True when the camera moved more than the thresholds from the submap's first frame
-    (the motion expressed in that frame's camera coordinates)."""
-    rel = np.linalg.inv(first_c2w) @ c2w
-    if cfg.rotation_measure == "angle":
-        angle = rotation_angle_deg(rel[:3, :3])
-    else:  # LoopSplat: any of roll, pitch, yaw
-        angle = float(np.abs(euler_zyx_deg(rel[:3, :3])).max())
-    return bool(np.linalg.norm(rel[:3, 3]) > cfg.max_translation or angle > cfg.max_rotation_deg)
-
-
-@dataclass
-class SubmapRecord:
-    """A finished, frozen submap on disk."""
-
-    index: int
-    path: str
-    first_frame: int
-    last_frame: int
-    keyframes: list[int]
-    gaussians: int
 
 
 @dataclass

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from bgs_batch.frames import block_mean, repeat_blocks
+from bgs_batch.slam.frames import block_mean, repeat_blocks
 
 CONV_LAYERS = 4
 PIXEL_LAYERS = 4  # the last one maps to the 2 outputs

@@ -19,12 +19,12 @@ from dataclasses import dataclass
 
 import torch
 
-from bgs_batch.adam import Adam
 from bgs_batch.config import Config
-from bgs_batch.frames import Level, block_mean, downsample
-from bgs_batch.gaussian_map import GaussianMap
-from bgs_batch.losses import predictive_variance, surprise_scores, tracking_loss
 from bgs_batch.render import Gaussians, RasterOutput, render, se3_exp, shape_matrices
+from bgs_batch.slam.adam import Adam
+from bgs_batch.slam.frames import Level, block_mean, downsample
+from bgs_batch.slam.gaussian_map import GaussianMap
+from bgs_batch.slam.losses import predictive_variance, surprise_scores, tracking_loss
 
 Variances = tuple[torch.Tensor, torch.Tensor]  # sensor colour [H,W,1], sensor depth [H,W,1]
 Images = tuple[torch.Tensor, ...]  # colour, depth, Σ_C, Σ_D of one render

@@ -17,7 +17,7 @@ At every submap switch the finished submap is the *query*:
 evaluation lever that injects odometry drift.
 """
 
-from bgs_batch.loop_closure.closer import LoopCloser
-from bgs_batch.loop_closure.drift import inject_drift
+from bgs_batch.slam.loop_closure.closer import LoopCloser
+from bgs_batch.slam.loop_closure.drift import inject_drift
 
 __all__ = ["LoopCloser", "inject_drift"]

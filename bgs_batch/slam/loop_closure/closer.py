@@ -14,26 +14,24 @@ odometry edges and loop edges. Word lists and bag-of-words vectors are derived a
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
 from bgs_batch.config import Config
 from bgs_batch.errors import BgsError
-from bgs_batch.frames import Level
-from bgs_batch.loop_closure import place_recognition, vocabulary
-from bgs_batch.loop_closure.correction import camera_shift, load_raw, write_correction
-from bgs_batch.loop_closure.features import DESCRIPTOR_BYTES, KeyframeFeatures, extract
-from bgs_batch.loop_closure.icp import subsample
-from bgs_batch.loop_closure.pose_graph import DOF, Edge, information, optimise, spread_loop
-from bgs_batch.loop_closure.submap_registration import SubmapRegistration, overlap
-from bgs_batch.loop_closure.verification import Verification, verify
-from bgs_batch.mapping import Keyframe
-from bgs_batch.sensor_noise import SensorNoiseNet
-
-if TYPE_CHECKING:
-    from bgs_batch.slam import SubmapRecord
+from bgs_batch.slam.frames import Level
+from bgs_batch.slam.loop_closure import place_recognition, vocabulary
+from bgs_batch.slam.loop_closure.correction import camera_shift, load_raw, write_correction
+from bgs_batch.slam.loop_closure.features import DESCRIPTOR_BYTES, KeyframeFeatures, extract
+from bgs_batch.slam.loop_closure.icp import subsample
+from bgs_batch.slam.loop_closure.pose_graph import DOF, Edge, information, optimise, spread_loop
+from bgs_batch.slam.loop_closure.submap_registration import SubmapRegistration, overlap
+from bgs_batch.slam.loop_closure.verification import Verification, verify
+from bgs_batch.slam.mapping import Keyframe
+from bgs_batch.slam.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.submaps import SubmapRecord
 
 VOCABULARY_STREAM, RANSAC_STREAM = 1, 2  # independent random streams derived from the seed
 POSE_ROWS = 3  # poses in reports: the top 3×4, row-major (as log.jsonl's "pose")

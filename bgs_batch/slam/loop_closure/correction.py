@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bgs_batch.gaussian_map import UNCERTAINTY_KEY
 from bgs_batch.geometry import matrix_to_quat
+from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY
 
 RAW_KEY = "raw_params"
 CORRECTION_KEY = "correction"

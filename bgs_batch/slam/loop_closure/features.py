@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from bgs_batch.config import LoopClosureConfig
-from bgs_batch.frames import Level
+from bgs_batch.slam.frames import Level
 
 DESCRIPTOR_BYTES = 32  # ORB: 256 bits
 DESCRIPTOR_BITS = 8 * DESCRIPTOR_BYTES

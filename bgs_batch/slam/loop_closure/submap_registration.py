@@ -22,15 +22,15 @@ import numpy as np
 import torch
 
 from bgs_batch.config import Config
-from bgs_batch.frames import block_mean, downsample
-from bgs_batch.gaussian_map import GaussianMap
 from bgs_batch.geometry import kd_tree, rotation_angle_deg
-from bgs_batch.loop_closure.icp import IcpResult, point_to_plane, subsample
-from bgs_batch.losses import predictive_variance
-from bgs_batch.mapping import Keyframe
 from bgs_batch.render import render
-from bgs_batch.sensor_noise import SensorNoiseNet
-from bgs_batch.tracking import Tracker
+from bgs_batch.slam.frames import block_mean, downsample
+from bgs_batch.slam.gaussian_map import GaussianMap
+from bgs_batch.slam.loop_closure.icp import IcpResult, point_to_plane, subsample
+from bgs_batch.slam.losses import predictive_variance
+from bgs_batch.slam.mapping import Keyframe
+from bgs_batch.slam.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.tracking import Tracker
 
 UNIFORM_VARIANCE = 1.0  # ≫ any rendered map variance: Σ is then the same at every pixel
 

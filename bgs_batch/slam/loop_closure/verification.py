@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from bgs_batch.config import LoopClosureConfig
-from bgs_batch.loop_closure.features import KeyframeFeatures, match
 from bgs_batch.metrics import align_rigid
+from bgs_batch.slam.loop_closure.features import KeyframeFeatures, match
 
 SAMPLE = 3  # points per rigid hypothesis
 MIN_SPREAD = 1e-3  # m²: hypotheses from (nearly) collinear samples are skipped

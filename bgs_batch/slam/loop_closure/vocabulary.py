@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bgs_batch.loop_closure.features import bits, hamming
+from bgs_batch.slam.loop_closure.features import bits, hamming
 
 MAJORITY = 2  # a centre bit is set when more than half of its members have it set
 
