@@ -21,7 +21,7 @@ def kd_tree(points: np.ndarray) -> cKDTree:
     return cKDTree(points)
 
 
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+def quat_xyzw_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrices (..., 3, 3) from unit quaternions (..., 4) in (x, y, z, w) order."""
     x, y, z, w = np.moveaxis(np.asarray(q, np.float64), -1, 0)
     return np.stack(
@@ -34,7 +34,7 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     )
 
 
-def matrix_to_quat(rot: np.ndarray) -> np.ndarray:
+def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
     """Unit quaternions (..., 4), (x, y, z, w) order, w ≥ 0, from rotation matrices (..., 3, 3).
 
     Bar-Itzhack's method: the quaternion is the dominant eigenvector of a symmetric 4x4 matrix
@@ -80,7 +80,7 @@ def pose_matrix(translation: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
     """Homogeneous transforms (..., 4, 4) from translations (..., 3) and quaternions (..., 4)."""
     translation = np.asarray(translation, np.float64)
     out = np.zeros(translation.shape[:-1] + (4, 4))
-    out[..., :3, :3] = quat_to_matrix(quat_xyzw)
+    out[..., :3, :3] = quat_xyzw_to_matrix(quat_xyzw)
     out[..., :3, 3] = translation
     out[..., 3, 3] = 1.0
     return out

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from bgs_batch.errors import InputError
-from bgs_batch.geometry import matrix_to_quat, pose_matrix
+from bgs_batch.geometry import matrix_to_quat_xyzw, pose_matrix
 from bgs_batch.store import StoreMeta
 from converters.pipeline import SourceFrame
 from converters.sens import SensFrame, SensHeader, read_frame, read_sens_index
@@ -115,7 +115,7 @@ def clean_pose(camera_to_world: np.ndarray) -> np.ndarray | None:
     """A rigid 4x4 pose (rotation re-orthonormalised: files keep ~7 digits), None if invalid."""
     if not np.all(np.isfinite(camera_to_world)):
         return None
-    return pose_matrix(camera_to_world[:3, 3], matrix_to_quat(camera_to_world[:3, :3]))
+    return pose_matrix(camera_to_world[:3, 3], matrix_to_quat_xyzw(camera_to_world[:3, :3]))
 
 
 def to_store_pair(bgr: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -30,7 +30,7 @@ import numpy as np
 import open3d as o3d
 
 from bgs_batch.errors import InputError, OutputExistsError
-from bgs_batch.geometry import matrix_to_quat
+from bgs_batch.geometry import matrix_to_quat_xyzw
 from bgs_batch.signals import interruptible
 
 # Independent random streams derived from the seed (the second entry of the generator key).
@@ -526,7 +526,7 @@ def _write_sequence(
         _imwrite(root / f"depth/{depth_stamp}.png", depth)
         rgb_lines.append(f"{stamp} rgb/{stamp}.png\n")
         depth_lines.append(f"{depth_stamp} depth/{depth_stamp}.png\n")
-        values = np.r_[pose[:3, 3], matrix_to_quat(pose[:3, :3])]
+        values = np.r_[pose[:3, 3], matrix_to_quat_xyzw(pose[:3, :3])]
         gt_lines.append(f"{stamp} " + " ".join(f"{x:.9f}" for x in values) + "\n")
         if progress is not None:
             progress(i + 1, config.frames)

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from bgs_batch import __version__
 from bgs_batch.errors import InputError
-from bgs_batch.geometry import matrix_to_quat
+from bgs_batch.geometry import matrix_to_quat_xyzw
 
 SH_C0 = 0.28209479177387814  # degree-0 real spherical harmonic, as in INRIA's RGB2SH
 MERGE_RADIUS_M = 0.01  # LoopSplat's merge rule: skip a Gaussian with a kept one closer than 1 cm
@@ -69,7 +69,7 @@ class Splats:
     def transformed(self, transform: np.ndarray) -> Splats:
         """Apply a rigid world correction (4×4): means move, quaternions rotate, the rest stays."""
         rot, trans = transform[:3, :3], transform[:3, 3]
-        xyzw = matrix_to_quat(rot)
+        xyzw = matrix_to_quat_xyzw(rot)
         correction = np.concatenate([xyzw[3:], xyzw[:3]])
         means = (self.means.astype(np.float64) @ rot.T + trans).astype(np.float32)
         quats = quat_multiply(correction, self.quats.astype(np.float64)).astype(np.float32)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bgs_batch.geometry import matrix_to_quat, pose_matrix
+from bgs_batch.geometry import matrix_to_quat_xyzw, pose_matrix
 from bgs_batch.metrics import align_rigid, ate
 
 TUM_HEADER = "# timestamp tx ty tz qx qy qz qw\n"
@@ -23,7 +23,7 @@ GT_MATCH_TOLERANCE_S = 1e-4  # TUM files keep 6 decimals; looser than that is a 
 def write_tum(path: Path, timestamps: np.ndarray, c2w: np.ndarray) -> None:
     """Write poses (N, 4, 4) with their timestamps; rows with NaN poses are left out."""
     known = np.all(np.isfinite(c2w), axis=(1, 2))
-    quats = matrix_to_quat(c2w[known, :3, :3])
+    quats = matrix_to_quat_xyzw(c2w[known, :3, :3])
     with open(path, "w") as fh:
         fh.write(TUM_HEADER)
         for t, pose, q in zip(timestamps[known], c2w[known], quats, strict=True):

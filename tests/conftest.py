@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bgs_batch.geometry import matrix_to_quat
+from bgs_batch.geometry import matrix_to_quat_xyzw
 
 SHARED_DATA = Path(
     os.environ.get("BGS_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")
@@ -78,7 +78,7 @@ def gt_pose(t: float) -> np.ndarray:
     angle = 0.3 * s
     rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
                     [0, 0, 1]])  # fmt: skip
-    return np.concatenate([[1.0 + 0.2 * s, -0.1 * s, 0.5], matrix_to_quat(rot)])
+    return np.concatenate([[1.0 + 0.2 * s, -0.1 * s, 0.5], matrix_to_quat_xyzw(rot)])
 
 
 @pytest.fixture

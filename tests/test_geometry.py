@@ -7,9 +7,9 @@ from scipy.spatial.transform import Rotation
 from bgs_batch.geometry import (
     euler_zyx_deg,
     interpolate_poses,
-    matrix_to_quat,
+    matrix_to_quat_xyzw,
     pose_matrix,
-    quat_to_matrix,
+    quat_xyzw_to_matrix,
     rotation_angle_deg,
     slerp,
 )
@@ -27,21 +27,22 @@ def axis_angle(axis, angle):
 @given(unit_quats)
 @settings(max_examples=200, deadline=None)
 def test_quaternion_round_trip(q):
-    rot = quat_to_matrix(q)
+    rot = quat_xyzw_to_matrix(q)
     assert np.allclose(rot @ rot.T, np.eye(3), atol=1e-12)
     assert np.isclose(np.linalg.det(rot), 1.0)
-    back = matrix_to_quat(rot)
+    back = matrix_to_quat_xyzw(rot)
     assert back[3] >= 0
     assert np.allclose(back, q, atol=1e-9) or np.allclose(back, -q, atol=1e-9)
 
 
-def test_quat_to_matrix_closed_form():
+def test_quat_xyzw_to_matrix_closed_form():
     # 90 degrees about z maps x to y
-    rot = quat_to_matrix(axis_angle([0, 0, 1], np.pi / 2))
+    rot = quat_xyzw_to_matrix(axis_angle([0, 0, 1], np.pi / 2))
     assert np.allclose(rot @ [1, 0, 0], [0, 1, 0])
-    assert np.allclose(matrix_to_quat(np.eye(3)), [0, 0, 0, 1])
+    assert np.allclose(matrix_to_quat_xyzw(np.eye(3)), [0, 0, 0, 1])
     # 180 degrees: the numerically delicate case
-    assert np.allclose(np.abs(matrix_to_quat(quat_to_matrix([1.0, 0, 0, 0]))), [1, 0, 0, 0])
+    half_turn = quat_xyzw_to_matrix([1.0, 0, 0, 0])
+    assert np.allclose(np.abs(matrix_to_quat_xyzw(half_turn)), [1, 0, 0, 0])
 
 
 def test_slerp_constant_rate_and_short_way():
@@ -74,7 +75,7 @@ def test_interpolate_poses_few_samples(n):
 @given(unit_quats)
 @settings(max_examples=200, deadline=None)
 def test_rotation_angle_and_euler_against_scipy(q):
-    rot = quat_to_matrix(q)
+    rot = quat_xyzw_to_matrix(q)
     reference = Rotation.from_quat(q)
     assert rotation_angle_deg(rot) == pytest.approx(np.degrees(reference.magnitude()), abs=1e-5)
     yaw, pitch, roll = reference.as_euler("ZYX", degrees=True)  # intrinsic: R = Rz Ry Rx

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from bgs_batch.config import LoopClosureConfig, load_config
-from bgs_batch.geometry import quat_to_matrix
+from bgs_batch.geometry import quat_xyzw_to_matrix
 from bgs_batch.render import se3_exp
 from bgs_batch.slam.loop_closure import inject_drift, place_recognition, vocabulary
 from bgs_batch.slam.loop_closure.closer import LoopCloser, LoopClosureError
@@ -150,9 +150,9 @@ def test_transform_params_moves_means_and_rotates_gaussians(tmp_path):
     np.testing.assert_allclose(moved["means"], means @ transform[:3, :3].T + transform[:3, 3],
                                atol=1e-6)  # fmt: skip
     wxyz = params["quats"].numpy().astype(np.float64)
-    before = quat_to_matrix(np.concatenate([wxyz[:, 1:], wxyz[:, :1]], 1))
+    before = quat_xyzw_to_matrix(np.concatenate([wxyz[:, 1:], wxyz[:, :1]], 1))
     wxyz = moved["quats"].numpy().astype(np.float64)
-    after = quat_to_matrix(np.concatenate([wxyz[:, 1:], wxyz[:, :1]], 1))
+    after = quat_xyzw_to_matrix(np.concatenate([wxyz[:, 1:], wxyz[:, :1]], 1))
     np.testing.assert_allclose(after, transform[:3, :3] @ before, atol=1e-6)
     assert moved["colors"] is params["colors"]
 

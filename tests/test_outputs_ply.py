@@ -5,7 +5,7 @@ import pytest
 from plyfile import PlyData
 
 from bgs_batch.errors import InputError
-from bgs_batch.geometry import quat_to_matrix
+from bgs_batch.geometry import quat_xyzw_to_matrix
 from outputs.ply import PROPERTIES, SH_C0, Splats, merge_submaps, read_ply, write_ply
 
 INRIA_ORDER = [
@@ -116,7 +116,7 @@ def test_correction_moves_means_and_rotations_consistently():
 
     def rotations(quats_wxyz):
         unit = quats_wxyz / np.linalg.norm(quats_wxyz, axis=1, keepdims=True)
-        return quat_to_matrix(np.roll(unit, -1, axis=1))
+        return quat_xyzw_to_matrix(np.roll(unit, -1, axis=1))
 
     np.testing.assert_allclose(
         rotations(moved.quats), correction[:3, :3] @ rotations(splats.quats), atol=1e-5

@@ -19,7 +19,7 @@ from bgs_batch.render import (
 from bgs_batch.render import _numba_project as npj
 from bgs_batch.render import _numba_raster as nr
 from bgs_batch.render.constants import T_MIN
-from bgs_batch.render.reference import quat_to_rotmat
+from bgs_batch.render.reference import quat_wxyz_to_matrix
 from bgs_batch.render.testing import (
     max_rel_error,
     random_gaussians,
@@ -144,7 +144,7 @@ def test_pose_only_gradient_equals_full_path(dtype, full_grad):
 def test_shape_matrices_closed_form(dtype):
     g = random_gaussians(300, seed=4)
     shapes = shape_matrices(g.log_scales.to(dtype), g.quats.to(dtype))
-    oracle = quat_to_rotmat(g.quats) * torch.exp(g.log_scales)[:, None, :]  # R·diag(e^s)
+    oracle = quat_wxyz_to_matrix(g.quats) * torch.exp(g.log_scales)[:, None, :]  # R·diag(e^s)
     assert shapes.dtype == dtype and max_rel_error(shapes, oracle) <= TOL[dtype]
     with pytest.raises(ValueError, match="shapes must be"):
         project(g.means, g.log_scales, g.quats, g.opacity_logits, torch.eye(4, dtype=g.means.dtype),

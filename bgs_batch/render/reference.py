@@ -15,7 +15,7 @@ PIXEL_CHUNK = 4096
 """Pixels composited at once by the dense reference (bounds its memory use)."""
 
 
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+def quat_wxyz_to_matrix(quats: torch.Tensor) -> torch.Tensor:
     """Rotation matrices [N,3,3] of (w, x, y, z) quaternions [N,4] (normalised here)."""
     w, x, y, z = (quats / quats.norm(dim=-1, keepdim=True)).unbind(-1)
     return torch.stack(
@@ -45,7 +45,7 @@ def project_ref(
     rot_w, trans_w = viewmat[:3, :3], viewmat[:3, 3]
     p = means @ rot_w.T + trans_w
     x, y, z = p.unbind(-1)
-    m = quat_to_rotmat(quats) * log_scales.exp().unsqueeze(-2)
+    m = quat_wxyz_to_matrix(quats) * log_scales.exp().unsqueeze(-2)
     cov_cam = rot_w @ (m @ m.transpose(-1, -2)) @ rot_w.T
     zero = torch.zeros_like(z)
     jac = torch.stack(

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bgs_batch.geometry import matrix_to_quat
+from bgs_batch.geometry import matrix_to_quat_xyzw
 from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY
 
 RAW_KEY = "raw_params"
@@ -42,7 +42,7 @@ def transform_params(params: dict[str, torch.Tensor], transform: np.ndarray
                      ) -> dict[str, torch.Tensor]:  # fmt: skip
     """Gaussians moved by a rigid transform: μ ← Rμ + t, q ← q_R ⊗ q; the rest unchanged."""
     rot, trans = transform[:3, :3], transform[:3, 3]
-    xyzw = matrix_to_quat(rot)
+    xyzw = matrix_to_quat_xyzw(rot)
     q_rot = np.concatenate([xyzw[3:], xyzw[:3]])
     out = dict(params)
     means = params["means"].numpy().astype(np.float64)
