@@ -154,7 +154,7 @@ class KeyframeConfig:
     max_gap: int = 5  # fallback: a keyframe at least every N frames
 
 
-# --- loop closure (issue P8) -------------------------------------------------------------------
+# --- loop closure -----------------------------------------------------------------------------
 @dataclass
 class LoopClosureConfig:
     """Loop closure over submaps (LoopSplat §5; `bgs_batch.slam.loop_closure`).
@@ -250,7 +250,7 @@ class Config:
     seeding: SeedingConfig = field(default_factory=SeedingConfig)
     submaps: SubmapConfig = field(default_factory=SubmapConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
-    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)  # issue P8
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

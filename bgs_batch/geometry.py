@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 
 def kd_tree(points: np.ndarray) -> cKDTree:
     """scipy's KD-tree over `points` (n, d). scipy.spatial is imported here, on first use: it
-    takes ~0.3 s and tracking a frame never needs it, so a resumed job starts sooner (P4)."""
+    takes ~0.3 s and tracking a frame never needs it, so a resumed job starts sooner."""
     from scipy.spatial import cKDTree
 
     return cKDTree(points)

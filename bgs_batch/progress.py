@@ -1,7 +1,7 @@
 """Progress bars for long work (rich), silent under ``--quiet`` or when stderr is not a terminal.
 
 rich is imported only when a bar is shown: ``bgs -q run`` (as Slurm runs it) skips its ~0.1 s
-import, which every resumed job would pay before its first frame (issue P4).
+import, which every resumed job would pay before its first frame.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Bag conversion: the real RealSense bag, TUM frames re-recorded as ROS1/ROS2/MCAP bags in every
-image encoding, the decoders on their own, registration, and every bad input of P6."""
+image encoding, the decoders on their own, registration, and every bad input."""
 
 from __future__ import annotations
 

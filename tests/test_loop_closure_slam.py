@@ -1,4 +1,4 @@
-"""Loop closure end to end on synthetic sequences (issue P8): ATE with and without it, loops
+"""Loop closure end to end on synthetic sequences: ATE with and without it, loops
 where ground truth has them, none without a revisit, and resume across a correction."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Adam (Kingma & Ba 2015) with optional AMSGrad, for the tracker, the mapper and the sensor net.
 
 Why not ``torch.optim.Adam``: constructing the first one imports ``torch._dynamo`` (1.5-2.6 s
-on the 2-core machine), which lands on every resumed job's latency (issue P4). This class does
+on the 2-core machine), which lands on every resumed job's latency. This class does
 the same arithmetic as torch's single-tensor CPU Adam (no weight decay, not maximising), op for
 op, so runs are bitwise identical to the ones made with it (tests/test_adam.py checks this).
 

@@ -22,7 +22,7 @@ from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.frames import Level, camera_for, crop_and_clip, downsample, to_level
 from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY, GaussianMap
 from bgs_batch.slam.keyframes import KeyframeSelector
-from bgs_batch.slam.loop_closure import LoopCloser, inject_drift  # issue P8
+from bgs_batch.slam.loop_closure import LoopCloser, inject_drift
 from bgs_batch.slam.loop_closure.correction import load_mapped, write_uncertainty
 from bgs_batch.slam.mapping import Keyframe, Mapper
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
@@ -39,7 +39,7 @@ class Timings:
     mapping: float = 0.0
     sensor: float = 0.0
     submaps: float = 0.0
-    loop_closure: float = 0.0  # issue P8: features, detection, registration, pose graph
+    loop_closure: float = 0.0  # features, detection, registration, pose graph
     refinement: float = 0.0  # uncertainty refinement of the frozen submaps at the end
 
     def add(self, stage: str, seconds: float) -> None:
@@ -71,7 +71,7 @@ class Slam:
         self.gmap = GaussianMap()
         self.active_keyframes: list[Keyframe] = []
         self.submap_first_frame = 0
-        self.loop_closer = LoopCloser(self.cfg)  # issue P8
+        self.loop_closer = LoopCloser(self.cfg)
         # the previous pose moved with an injected drift: the next constant-velocity step's
         # reference, so that the drift moves the new submap rigidly instead of adding a jump
         # to the velocity (None: the previous pose itself)
@@ -123,13 +123,13 @@ class Slam:
             self._finish_submap(last_frame=frame.index - 1)
             first_of_submap = True
             self.timings.add("submaps", time.perf_counter() - start)
-            c2w = self._close_loops(finished, event)  # issue P8: may correct every pose
+            c2w = self._close_loops(finished, event)  # may correct every pose
 
         decision = self.selector.decide(frame.index, score_c, score_d, first_of_submap)
         event.update(decision.as_dict())
         if decision.keyframe:
             start = time.perf_counter()
-            self.loop_closer.add_keyframe(frame.index, len(self.submaps), full, c2w)  # P8
+            self.loop_closer.add_keyframe(frame.index, len(self.submaps), full, c2w)
             self.timings.add("loop_closure", time.perf_counter() - start)
             start = time.perf_counter()
             self.active_keyframes.append(Keyframe(frame.index, level, c2w))
@@ -167,7 +167,7 @@ class Slam:
             return index - self.submap_first_frame >= s.every
         return exceeds_motion(self.poses[self.submap_first_frame], c2w, s)
 
-    # --- loop closure hook (issue P8) -------------------------------------------------------
+    # --- loop closure hook --------------------------------------------------------------
     def _close_loops(self, finished: list[Keyframe], event: dict[str, Any] | None) -> np.ndarray:
         """Loop closure after a submap was frozen (it may correct all poses so far), then the
         optional injected drift of the new submap's first pose; returns the current pose."""
@@ -220,7 +220,7 @@ class Slam:
             "tracker": self.tracker.state_dict(),
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
-            "loop_closure": self.loop_closer.state_dict(),  # issue P8
+            "loop_closure": self.loop_closer.state_dict(),
             "drifted_prev": (None if self.drifted_prev is None
                              else torch.from_numpy(self.drifted_prev)),  # fmt: skip
         }
@@ -245,7 +245,7 @@ class Slam:
             self.tracker.load_state_dict(state["tracker"])
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
-        if "loop_closure" in state:  # issue P8 (absent in older checkpoints)
+        if "loop_closure" in state:  # absent in older checkpoints
             self.loop_closer.load_state_dict(state["loop_closure"])
         drifted = state.get("drifted_prev")
         self.drifted_prev = None if drifted is None else np.ascontiguousarray(drifted.numpy())
@@ -257,7 +257,7 @@ class Slam:
         if self.active_keyframes:
             finished = self.active_keyframes
             self._finish_submap(last_frame=len(self.poses) - 1)
-            if self.cfg.loop_closure.final:  # issue P8: LoopSplat's lc.final
+            if self.cfg.loop_closure.final:  # LoopSplat's lc.final
                 self._close_loops(finished, event=None)
         if self.cfg.uncertainty.refine_passes:
             start = time.perf_counter()

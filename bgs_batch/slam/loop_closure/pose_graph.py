@@ -64,7 +64,7 @@ def spread_loop(corrections: np.ndarray, edge: Edge) -> np.ndarray:
     large drift would look like an outlier and be pruned. From here it is judged by how well
     the whole graph can agree with it.
     """
-    from scipy.spatial.transform import Rotation  # on first use, as `kd_tree` (issue P4)
+    from scipy.spatial.transform import Rotation  # on first use, as `kd_tree`
 
     out = corrections.copy()
     s, t = edge.source, edge.target
