@@ -62,20 +62,14 @@ class TrackingConfig:
     coarse_fraction: float = 0.0  # share of the iterations spent on the coarse levels
     early_stop_rel: float = 0.0  # stop when the best loss improved by less than this ...
     early_stop_patience: int = 0  # ... over this many iterations (0 disables early stopping)
-    # Adam's first steps are about lr in size whatever the gradient (1 cm, 0.11°), often more
-    # than a finer level has left to correct: each finer level's rates are this many times the
-    # coarser one's (1 = the same rates everywhere). 0.25 with 40 iterations tracked fr1/rpy
-    # frames more precisely (0.91 -> 0.59 cm frame to frame), but in the cpu preset over all
-    # 240 frames it gave 2.88 cm against 2.61 and 54 instead of 39 iterations per frame, and
-    # 8.3 against 3.1 cm on the synthetic loop (tests/test_loop_closure_slam.py): no preset
-    # uses it
+    # each finer level's rates are this many times the coarser one's (1: the same everywhere),
+    # since Adam's first steps are about lr in size whatever is left to correct; no preset uses
+    # it: more precise frame to frame, worse over a sequence (docs/experiments.md)
     level_lr_factor: float = 1.0
     # LoopSplat's init_err_ratio: a frame whose loss at the initial pose exceeds this many times
     # the median best loss of the frames tracked before (both at the coarsest level) gets twice
-    # the iterations on every level (fast motion; 0 disables). Off in both presets: the
-    # authors' code has it dead (bayesiangs_code.md §5), and in the cpu preset on fr1/rpy (240
-    # frames) LoopSplat's 5 never fires (2.61 cm, bit for bit) while 2 fires on submap starts
-    # and fast turns and loses (3.16 cm)
+    # the iterations on every level (0 disables); off, as in the authors' code, since it did
+    # not help on fr1/rpy (docs/experiments.md)
     init_err_ratio: float = 0.0
     # Where the pose update's rotation turns the camera: about the point on the optical axis at
     # this fraction of the frame's median measured depth (exp(ξ) conjugated by that shift).
@@ -83,11 +77,8 @@ class TrackingConfig:
     # trackers. About the centre, a turn and a sideways shift move the image alike, and Adam's
     # per-coordinate steps (1 cm against 0.11°) explain a fast turn by a shift first, then creep
     # along that valley; about a point in the scene a rotation moves the image mostly by
-    # parallax, so the two trade less. cpu preset on fr1/rpy, seeds 0/1: the frame-to-frame
-    # error falls (mean 0.77/0.85 cm -> 0.69/0.67 at ratio 1, 0.65/0.69 at 0.5) and the first 30
-    # frames track to 0.76/0.82 cm instead of 1.68/2.60, but over all 240 frames the drift does
-    # not (ATE 3.77/2.89 at ratio 1, 2.49/5.05 at 0.5, against 2.59/3.29); at ratio 1 a 5° yaw
-    # start on the synthetic scene diverges. No preset uses it
+    # parallax, so the two trade less. No preset uses it: the drift over a sequence did not
+    # fall (docs/experiments.md)
     pivot_depth_ratio: float = 0.0
 
 
@@ -107,12 +98,9 @@ class MappingConfig:
     lr_opacity: float = 0.05
     lr_scales: float = 5e-3
     lr_rotations: float = 1e-3
-    # the authors' feature_lr for r_i. In the cpu preset's budget (40 iterations, ~24 % of frames
-    # mapped) v_i hardly learns at this rate: after fr1/rpy's 240 frames its 1st-99th
-    # percentiles span 2e-4-2e-3 around the initial 9.1e-4, so V stays ~1e-3 while σ²_sensor,D
-    # reaches 0.8 and sets the order of Σ_D. At 0.05, v_i spans 0-0.6 and Σ_D ranks depth
-    # errors better than the map term on 2 of 3 seeds, but tracking loses (ATE at seeds 0/1/2:
-    # 3.7/4.9/4.2 cm against 2.6/3.3/2.5); at 0.02 (2.9/2.9 cm) the map term still ranks better
+    # the authors' feature_lr for r_i; v_i hardly learns at it in the cpu budget, but faster
+    # rates cost tracking more than they help the ranking (docs/experiments.md), so the
+    # end-of-run refinement (uncertainty.refine_passes) trains it instead
     lr_uncertainty: float = 2.5e-3
 
 
@@ -139,8 +127,7 @@ class SubmapConfig:
     max_rotation_deg: float = 50.0
     # "angle": the rotation angle itself (axis-order free; never below any single Euler angle,
     # so it switches no later); "euler": any of roll, pitch, yaw of R = R_z R_y R_x exceeds
-    # the threshold, LoopSplat's test (fr1/rpy, 240 frames: 3 submaps instead of 6, no loop
-    # closure then, ATE 3.36 instead of 3.08 cm)
+    # the threshold, LoopSplat's test (fewer submaps, so fewer loops: docs/experiments.md)
     rotation_measure: Literal["angle", "euler"] = "angle"
     every: int = 50  # frames, for mode "interval"
 
@@ -271,25 +258,18 @@ PRESETS: dict[str, dict[str, Any]] = {
         "mapping.new_submap_iterations": 60,
         "mapping.downscale": 2,
         "uncertainty.sensor_downscale": 4,  # the network at 80×60: ~90 → ~20 ms per mapping step
-        # start the network at the map floor's scale, not at softplus(0) ≈ 0.69: from 0.69 the
-        # NLL drives every output down so hard that the head saturates at the 1e-4 floor and
-        # never recovers (fr1/rpy 240 frames: σ²_sensor = 1e-4 ± 2e-7 on every pixel; 60
-        # frames: keyframes 62 % -> 27 %, PSNR 20.0 -> 21.8 dB). From there the paper's rate
-        # (1e-4, the default) suffices; the 10× rate this preset used to start from 0.69 is
-        # not needed (240 frames: ATE 3.08 -> 2.80 cm, 55 -> 58 keyframes)
+        # start the network at the map floor's scale, not at softplus(0) ≈ 0.69, from which the
+        # NLL saturates it at the 1e-4 floor for good (docs/experiments.md)
         "uncertainty.sensor_initial": 1e-3,
-        # at the end, fit the frozen submaps' r_i and the sensor network by the NLL. fr1/rpy, 240
-        # frames, seeds 0/1/2: the depth AUSE of Σ_D falls from 0.0105/0.0184/0.0106 to
-        # 0.0073/0.0105/0.0083, below the map term's 0.0089/0.0121/0.0087; 37 s; tracking is
-        # over by then: the same trajectories
+        # at the end, fit the frozen submaps' r_i and the sensor network by the NLL: the map
+        # term gets the iterations mapping cannot give it; tracking is over by then
         "uncertainty.refine_passes": 15,
         # a batch run is read at the end: also close loops from the last submap (LoopSplat's
-        # lc.final, off in its configs; fr1/rpy 240 frames with sensor_lr 1e-4: 2.80 -> 2.61 cm)
+        # lc.final, off in its configs)
         "loop_closure.final": True,
-        # and look for loops two submaps back instead of four (LoopSplat's TUM values, 3 and 4,
-        # guard an online run against false loops; geometric verification and the render-based
-        # gates check every candidate). fr1/rpy turns in place, so every submap sees older ones:
-        # 240 frames, seeds 0/1/2: ATE 2.59/3.29/2.50 -> 2.50/2.91/2.52 cm
+        # and look for loops two submaps back instead of four: LoopSplat's TUM values guard an
+        # online run against false loops, and geometric verification and the render-based
+        # gates check every candidate here
         "loop_closure.min_interval": 1,
         "loop_closure.min_submaps": 2,
         "seeding.new_submap_points": 30_000,
