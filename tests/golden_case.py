@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import traceback
 from pathlib import Path
 from typing import Any
 
@@ -170,7 +171,8 @@ def run_case(case: str, workdir: Path, overrides: list[str]) -> dict[str, Any]:
     sets = sum((["--set", s] for s in [*FAST, *overrides]), [])
     result = CliRunner().invoke(main, ["-q", "run", str(store), "--job-dir", str(job), *sets])
     if result.exit_code != 0:
-        raise SystemExit(f"bgs run failed ({result.exit_code}): {result.output}")
+        trace = "".join(traceback.format_exception(result.exception)) if result.exception else ""
+        raise SystemExit(f"bgs run failed ({result.exit_code}): {result.output}{trace}")
     return condense(job)
 
 
