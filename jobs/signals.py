@@ -10,6 +10,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from bgs_batch.errors import BgsError
+from bgs_batch.signals import signal_handlers
 
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGUSR1, signal.SIGINT)
 PREEMPTED_EXIT = 75  # EX_TEMPFAIL: "try again later"; the job resumes from its checkpoint
@@ -41,13 +42,5 @@ def stop_requests() -> Iterator[StopRequest]:
     def note(signum: int, _frame: object) -> None:
         request.requested = signum
 
-    try:
-        previous = {s: signal.signal(s, note) for s in STOP_SIGNALS}
-    except ValueError:  # not the main thread: signals cannot be caught here
+    with signal_handlers(STOP_SIGNALS, note):
         yield request
-        return
-    try:
-        yield request
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
