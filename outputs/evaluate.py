@@ -17,7 +17,6 @@ import numpy as np
 import torch
 
 from bgs_batch import __version__
-from bgs_batch.metrics import align_rigid, ate
 from outputs.ause import (
     FRACTIONS,
     Sparsification,
@@ -28,12 +27,11 @@ from outputs.ause import (
 from outputs.image_metrics import MS_SSIM_MIN_SIDE, depth_l1, ms_ssim, psnr, ssim_index
 from outputs.jobfiles import FinishedJob
 from outputs.lpips import Lpips, lpips_distance
-from outputs.trajectory import apply_alignment
+from outputs.trajectory import MIN_ALIGNED_FRAMES, align_to_ground_truth
 from outputs.uncertainty import DEPTH_VARIANCES, FrameUncertainty
 
 METRICS_SCHEMA = 1
 CM_PER_M = 100.0
-MIN_ALIGNED_FRAMES = 3  # a rigid alignment needs three non-collinear positions
 
 CONVENTIONS = {
     "ate": "Absolute trajectory error of camera positions over every frame with both an "
@@ -196,16 +194,13 @@ def evaluate_trajectory(job: FinishedJob) -> TrajectoryEvaluation:
     gt = job.ground_truth(timestamps)
     if gt is None:
         return TrajectoryEvaluation(timestamps, estimate, None, None, None, {})
-    rows = np.all(np.isfinite(estimate), axis=(1, 2)) & np.all(np.isfinite(gt), axis=(1, 2))
-    if rows.sum() < MIN_ALIGNED_FRAMES:
+    alignment = align_to_ground_truth(estimate, gt)
+    if alignment is None:
         return TrajectoryEvaluation(timestamps, estimate, gt, None, None, {})
-    est_xyz, gt_xyz = estimate[rows, :3, 3], gt[rows, :3, 3]
-    rot, trans, _ = align_rigid(est_xyz, gt_xyz)
-    aligned = apply_alignment(estimate, rot, trans)
-    errors = np.linalg.norm(aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
-    errors[~rows] = np.nan
-    stats = {"rigid": ate(est_xyz, gt_xyz), "with_scale": ate(est_xyz, gt_xyz, True)}
-    return TrajectoryEvaluation(timestamps, estimate, gt, aligned, errors, stats)
+    errors = np.linalg.norm(alignment.aligned[:, :3, 3] - gt[:, :3, 3], axis=1)
+    errors[~alignment.rows] = np.nan
+    return TrajectoryEvaluation(timestamps, estimate, gt, alignment.aligned, errors,
+                                alignment.stats)  # fmt: skip
 
 
 def _ate_section(evaluation: TrajectoryEvaluation) -> dict[str, Any]:

@@ -7,6 +7,7 @@ their own timestamps; KITTI lines do not, so every KITTI file written together b
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ TUM_HEADER = "# timestamp tx ty tz qx qy qz qw\n"
 TUM_COLUMNS = 8
 KITTI_VALUES = 12  # the first three rows of the 4×4 pose, row-major
 GT_MATCH_TOLERANCE_S = 1e-4  # TUM files keep 6 decimals; looser than that is a different frame
+MIN_ALIGNED_FRAMES = 3  # a rigid alignment needs three non-collinear positions
 
 
 def write_tum(path: Path, timestamps: np.ndarray, c2w: np.ndarray) -> None:
@@ -76,6 +78,29 @@ def apply_alignment(c2w: np.ndarray, rot: np.ndarray, trans: np.ndarray) -> np.n
     return out
 
 
+@dataclass(frozen=True)
+class Alignment:
+    """An estimate aligned to its ground truth, and the ATE statistics (m) of both alignments."""
+
+    rows: np.ndarray  # (N,) frames where estimate and ground truth are both finite
+    aligned: np.ndarray  # (N, 4, 4) the estimate after the rigid alignment
+    stats: dict[str, dict[str, float]]  # "rigid", "with_scale": `ate` statistics
+
+
+def align_to_ground_truth(estimate: np.ndarray, ground_truth: np.ndarray) -> Alignment | None:
+    """Rigid (rotation + translation, no scale; Horn/Umeyama) alignment of the positions over the
+    frames where both poses are finite, as ``evo_ape tum gt.tum estimate.tum -a``, with the ATE
+    after it and after a Sim(3) alignment (``-as``); None with fewer than three such frames."""
+    rows = np.all(np.isfinite(estimate), axis=(1, 2)) & np.all(np.isfinite(ground_truth),
+                                                                axis=(1, 2))  # fmt: skip
+    if rows.sum() < MIN_ALIGNED_FRAMES:
+        return None
+    est_xyz, gt_xyz = estimate[rows, :3, 3], ground_truth[rows, :3, 3]
+    rot, trans, _ = align_rigid(est_xyz, gt_xyz)
+    stats = {"rigid": ate(est_xyz, gt_xyz), "with_scale": ate(est_xyz, gt_xyz, True)}
+    return Alignment(rows, apply_alignment(estimate, rot, trans), stats)
+
+
 def write_trajectories(out_dir: Path, timestamps: np.ndarray, estimate: np.ndarray,
                        ground_truth: np.ndarray | None = None
                        ) -> dict[str, dict[str, float]]:  # fmt: skip
@@ -94,14 +119,14 @@ def write_trajectories(out_dir: Path, timestamps: np.ndarray, estimate: np.ndarr
     trajectories = {"estimate": estimate}
     stats: dict[str, dict[str, float]] = {}
     if ground_truth is not None:
-        rows &= np.all(np.isfinite(ground_truth), axis=(1, 2))
-        if rows.sum() < 3:
-            raise ValueError(f"only {rows.sum()} frames have both an estimate and ground truth")
-        est_xyz, gt_xyz = estimate[rows, :3, 3], ground_truth[rows, :3, 3]
-        rot, trans, _ = align_rigid(est_xyz, gt_xyz)
-        trajectories["estimate_aligned"] = apply_alignment(estimate, rot, trans)
+        alignment = align_to_ground_truth(estimate, ground_truth)
+        if alignment is None:
+            both = int((rows & np.all(np.isfinite(ground_truth), axis=(1, 2))).sum())
+            raise ValueError(f"only {both} frames have both an estimate and ground truth")
+        rows = alignment.rows
+        trajectories["estimate_aligned"] = alignment.aligned
         trajectories["gt"] = ground_truth
-        stats = {"rigid": ate(est_xyz, gt_xyz), "with_scale": ate(est_xyz, gt_xyz, True)}
+        stats = alignment.stats
         write_tum(out_dir / "estimate_aligned.tum", timestamps, trajectories["estimate_aligned"])
         write_tum(out_dir / "gt.tum", timestamps, ground_truth)
     for name, poses in trajectories.items():
