@@ -16,6 +16,7 @@ import math
 import torch
 import torch.nn.functional as F
 
+from bgs_batch.slam.blur import gaussian_window
 from bgs_batch.slam.losses import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW, ssim
 
 MS_SSIM_WEIGHTS = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
@@ -36,9 +37,7 @@ def ssim_index(rendered: torch.Tensor, target: torch.Tensor) -> float:
 def _ssim_terms(a: torch.Tensor, b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-channel mean SSIM and mean contrast-structure term of [1,C,H,W] images (valid)."""
     channels = a.shape[1]
-    x = torch.arange(SSIM_WINDOW, dtype=a.dtype) - SSIM_WINDOW // 2
-    g = torch.exp(-(x**2) / (2 * SSIM_SIGMA**2))
-    g = g / g.sum()
+    g = gaussian_window(SSIM_WINDOW, SSIM_SIGMA, a.dtype)
     rows, cols = g.view(1, 1, -1, 1), g.view(1, 1, 1, -1)
 
     def blur(img: torch.Tensor) -> torch.Tensor:
