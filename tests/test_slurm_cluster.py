@@ -23,8 +23,7 @@ from pathlib import Path
 import pytest
 from conftest import make_tum_folder
 
-from converters.pipeline import write_store
-from converters.tum import TumOptions, plan_tum
+from converters.tum import convert_tum
 from jobs.run import TIMING_FIELDS
 
 pytestmark = pytest.mark.slow
@@ -83,8 +82,7 @@ def slurm_cluster() -> None:
 
 def make_store(root: Path, name: str, seed: int) -> Path:
     folder = make_tum_folder(root / f"src_{name}", frames=FRAMES, size=SIZE, seed=seed)
-    plan = plan_tum(folder, TumOptions())
-    return write_store(plan.frames, root / f"{name}.h5", plan.meta).path
+    return convert_tum(folder, root / f"{name}.h5")
 
 
 def frames_logged(job: Path) -> int:
@@ -153,19 +151,25 @@ def test_array_resumes_bitwise_after_usr1_and_scontrol_requeue(slurm_cluster, tm
     array_id = re.search(r"submitted array job (\d+)", submitted.stdout).group(1)
     references: list[subprocess.Popen[str]] = []
     try:
+        # task 0 gets the time-limit warning, as --signal=B:USR1 delivers it (to the batch shell
+        # only); task 1 is requeued. Each as soon as it has tracked a few frames: on a loaded
+        # machine one task may start long after the other
+        interrupts = [("scancel", "--batch", "--signal=USR1", f"{array_id}_0"),
+                      ("scontrol", "requeue", f"{array_id}_1")]  # fmt: skip
+        pending = dict(enumerate(jobs))
         deadline = time.monotonic() + START_TIMEOUT_S
-        while not all(frames_logged(job) >= SIGNAL_AFTER_FRAMES for job in jobs):
+        while pending:
+            for i, job in list(pending.items()):
+                if frames_logged(job) >= SIGNAL_AFTER_FRAMES:
+                    sent = query(*interrupts[i])
+                    assert sent.returncode == 0, sent.stderr
+                    assert frames_logged(job) < FRAMES, f"task {i} ended before its signal"
+                    del pending[i]
             assert time.monotonic() < deadline, (
                 f"tasks did not start tracking within {START_TIMEOUT_S} s: squeue says "
                 f"{tasks(array_id)}\n{slurm_outputs(root)}"
             )
             time.sleep(POLL_S)
-        # the time-limit warning, as --signal=B:USR1 delivers it: to the batch shell only
-        warn = query("scancel", "--batch", "--signal=USR1", f"{array_id}_0")
-        assert warn.returncode == 0, warn.stderr
-        requeue = query("scontrol", "requeue", f"{array_id}_1")
-        assert requeue.returncode == 0, requeue.stderr
-        assert all(frames_logged(job) < FRAMES for job in jobs), "a task ended before its signal"
         references = [local_run(s, tmp_path / f"local_{s.stem}") for s in stores]
 
         deadline = time.monotonic() + FINISH_TIMEOUT_S
