@@ -23,8 +23,7 @@ from pathlib import Path
 from slam_tum import DEFAULT_TUM
 
 from bgs_batch.config import ConfigError, load_config
-from converters.pipeline import write_store
-from converters.tum import TumOptions, plan_tum
+from converters.tum import TumOptions, convert_tum
 from jobs.run import RunSummary, run_job
 
 
@@ -54,8 +53,7 @@ def main() -> None:
         sys.exit(f"bench/ate_seeds.py: {err}")
 
     with tempfile.TemporaryDirectory() as tmp:
-        plan = plan_tum(args.tum, TumOptions(max_frames=args.frames))
-        store = write_store(plan.frames, Path(tmp) / "seq.h5", plan.meta).path
+        store = convert_tum(args.tum, Path(tmp) / "seq.h5", TumOptions(max_frames=args.frames))
         configs = {"cpu": []}
         if args.overrides:
             configs["cpu + " + " ".join(args.overrides)] = args.overrides

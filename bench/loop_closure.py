@@ -28,9 +28,8 @@ import numpy as np
 from bgs_batch.config import load_config
 from bgs_batch.slam.loop_closure.evaluation import accepted_loops, is_true_loop, submap_frames
 from bgs_batch.store import FrameStore
-from converters.pipeline import write_store
 from converters.synthetic import SynthConfig, synthesize
-from converters.tum import TumOptions, plan_tum
+from converters.tum import convert_tum
 from jobs.checkpoint import load_latest
 from jobs.run import RunSummary, run_job
 
@@ -49,8 +48,7 @@ def make_store(root: Path, frames: int, size: tuple[int, int], seed: int, radius
     folder = synthesize(root / "seq", SynthConfig(frames=frames, width=size[0], height=size[1],
                                                   seed=seed, loop=loop, fps=FPS, speed=SPEED,
                                                   path_radius=radius))  # fmt: skip
-    plan = plan_tum(folder, TumOptions())
-    return write_store(plan.frames, root / "seq.h5", plan.meta).path
+    return convert_tum(folder, root / "seq.h5")
 
 
 def run(store: Path, job: Path, sets: list[str]) -> tuple[RunSummary, list[dict]]:

@@ -31,8 +31,7 @@ import numpy as np
 from bgs_batch.config import load_config
 from bgs_batch.metrics import ate
 from bgs_batch.store import FrameStore
-from converters.pipeline import write_store
-from converters.tum import TumOptions, plan_tum
+from converters.tum import TumOptions, convert_tum
 from jobs.run import run_job
 from outputs.export import ExportOptions, export_job
 
@@ -119,8 +118,7 @@ def main() -> None:
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        plan = plan_tum(args.tum, TumOptions(max_frames=args.frames))
-        store_path = write_store(plan.frames, Path(tmp) / "seq.h5", plan.meta).path
+        store_path = convert_tum(args.tum, Path(tmp) / "seq.h5", TumOptions(max_frames=args.frames))
         with FrameStore(store_path) as store:
             n = len(store)
             gt = store.poses_gt[:, :3, 3]

@@ -17,6 +17,7 @@ import re
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -25,7 +26,7 @@ from bgs_batch.errors import InputError
 from bgs_batch.geometry import interpolate_poses
 from bgs_batch.store import StoreMeta
 from converters.association import associate, association_summary
-from converters.pipeline import SourceFrame
+from converters.pipeline import SourceFrame, write_store
 
 TUM_DEPTH_SCALE = 5000.0
 QUATERNION_NORM_TOLERANCE = 1e-2  # TUM prints 4 decimals; anything further off is corrupt
@@ -347,6 +348,14 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
         provenance=provenance,
     )
     return TumPlan(frames, meta, tuple(notes))
+
+
+def convert_tum(folder: Path, output: Path, options: TumOptions | None = None,
+                **write_options: Any) -> Path:  # fmt: skip
+    """Plan and write a TUM folder's frame store in one call (`bgs convert tum` as a function);
+    `write_options` go to `write_store`. Returns the store's path."""
+    plan = plan_tum(folder, options or TumOptions())
+    return write_store(plan.frames, output, plan.meta, **write_options).path
 
 
 def _image_size(files: list[tuple[Path, Path]]) -> tuple[int, int]:

@@ -18,8 +18,7 @@ from conftest import make_tum_folder
 
 from bgs_batch.cli import main
 from bgs_batch.config import load_config
-from converters.pipeline import write_store
-from converters.tum import TumOptions, plan_tum
+from converters.tum import convert_tum
 from jobs.checkpoint import CHECKPOINT_DIR, load_latest, write_checkpoint
 from jobs.jobdir import LOCK_FILE, JobError, job_lock
 from jobs.run import TIMING_FIELDS, run_job
@@ -29,8 +28,7 @@ TINY = ["mapping.iterations=2", "mapping.new_submap_iterations=2", "tracking.ite
 
 def tiny_store(root, seed=0):
     folder = make_tum_folder(root / f"src{seed}", frames=3, seed=seed)
-    plan = plan_tum(folder, TumOptions())
-    return write_store(plan.frames, root / f"s{seed}.h5", plan.meta).path
+    return convert_tum(folder, root / f"s{seed}.h5")
 
 
 def test_job_json_records_inputs_and_refuses_changes(tmp_path):
@@ -133,8 +131,7 @@ def resume_case(tmp_path_factory):
     """A 12-frame store and the uninterrupted run every resumed run must equal."""
     root = tmp_path_factory.mktemp("resume")
     folder = make_tum_folder(root, frames=12, size=(64, 48), seed=5)
-    plan = plan_tum(folder, TumOptions())
-    store = write_store(plan.frames, root / "s.h5", plan.meta).path
+    store = convert_tum(folder, root / "s.h5")
     run_job(store, root / "reference", load_config("cpu", RESUME))
     return store, root / "reference"
 
@@ -251,8 +248,7 @@ def test_failed_checkpoint_write_keeps_the_previous_one(tmp_path, monkeypatch):
 
 def test_the_store_s_recommended_crop_is_applied_unless_set(tmp_path):
     folder = make_tum_folder(tmp_path / "src", frames=2, size=(640, 480))  # freiburg1: 50 px
-    plan = plan_tum(folder, TumOptions())
-    store = write_store(plan.frames, tmp_path / "fr1.h5", plan.meta).path
+    store = convert_tum(folder, tmp_path / "fr1.h5")
 
     def run(job: str, *sets: str):
         args = ["-q", "run", str(store), "--job-dir", str(tmp_path / job), "--max-frames", "1",

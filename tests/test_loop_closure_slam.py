@@ -14,9 +14,8 @@ from bgs_batch.config import load_config
 from bgs_batch.slam.loop_closure.correction import transform_params
 from bgs_batch.slam.loop_closure.evaluation import accepted_loops, is_true_loop, submap_frames
 from bgs_batch.store import FrameStore
-from converters.pipeline import write_store
 from converters.synthetic import SynthConfig, synthesize
-from converters.tum import TumOptions, plan_tum
+from converters.tum import convert_tum
 from jobs.run import TIMING_FIELDS, run_job
 from outputs.trajectory import read_tum
 
@@ -36,8 +35,7 @@ MAX_ATE_RATIO = 0.6
 
 def make_store(root: Path, synth: SynthConfig) -> Path:
     folder = synthesize(root / "seq", synth)
-    plan = plan_tum(folder, TumOptions())
-    return write_store(plan.frames, root / "seq.h5", plan.meta).path
+    return convert_tum(folder, root / "seq.h5")
 
 
 def read_log(job: Path) -> list[dict]:

@@ -19,7 +19,7 @@ from bgs_batch.slam import Slam
 from bgs_batch.store import FrameStore
 from converters.pipeline import write_store
 from converters.synthetic import SynthConfig, synthesize
-from converters.tum import TumOptions, plan_tum
+from converters.tum import TumOptions, convert_tum, plan_tum
 from outputs.ause import colour_sparsification
 from outputs.jobfiles import FinishedJob
 from outputs.lpips import Lpips
@@ -47,8 +47,7 @@ def finished(tmp_path_factory):
     root = tmp_path_factory.mktemp("export")
     folder = synthesize(root / "seq", SynthConfig(frames=FRAMES, width=SIZE[0], height=SIZE[1],
                                                   seed=2))  # fmt: skip
-    plan = plan_tum(folder, TumOptions())
-    store = write_store(plan.frames, root / "seq.h5", plan.meta).path
+    store = convert_tum(folder, root / "seq.h5")
     job = root / "job"
     result = run(*run_args(store, job))
     assert result.exit_code == 0, result.output

@@ -11,9 +11,8 @@ from click.testing import CliRunner
 
 from bgs_batch.cli import main
 from bgs_batch.config import load_config
-from converters.pipeline import write_store
 from converters.synthetic import SynthConfig, synthesize
-from converters.tum import TumOptions, plan_tum
+from converters.tum import convert_tum
 from jobs.run import run_job
 from outputs.trajectory import read_tum
 
@@ -23,8 +22,7 @@ CORES = 2
 def synthetic_store(root: Path, frames: int, size=(160, 120), seed: int = 1) -> Path:
     folder = synthesize(root / "seq", SynthConfig(frames=frames, width=size[0], height=size[1],
                                                   seed=seed))  # fmt: skip
-    plan = plan_tum(folder, TumOptions())
-    return write_store(plan.frames, root / "seq.h5", plan.meta).path
+    return convert_tum(folder, root / "seq.h5")
 
 
 @pytest.fixture(scope="module")
