@@ -90,11 +90,12 @@ def _numpy_targets_above() -> list[str]:
 
 
 def _opencv_targets_above() -> list[str]:
-    """OpenCV's dispatched code paths above AVX2 (its feature line marks them with ``*``)."""
+    """OpenCV's dispatched code paths above AVX2 that this CPU has (its feature line marks
+    dispatched ones with ``*`` and those the CPU lacks with ``?``; OpenCV warns about those)."""
     import cv2
 
     names = [name.lstrip("*") for name in cv2.getCPUFeaturesLine().split()]
-    return [name for name in names if name not in OPENCV_TARGET_LEVELS]
+    return [n for n in names if n not in OPENCV_TARGET_LEVELS and not n.endswith("?")]
 
 
 def statistics(values: Any) -> dict[str, Any]:

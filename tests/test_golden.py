@@ -101,3 +101,6 @@ def test_the_pinned_environment_holds_every_dispatching_library_to_avx2(tmp_path
     assert "avx512" not in env["NUMBA_CPU_FEATURES"]
     assert env["ATEN_CPU_CAPABILITY"] == "avx2" and env["ONEDNN_MAX_CPU_ISA"] == "AVX2"
     assert env["MKL_CBWR"] == "AVX2" and env["NUMBA_CACHE_DIR"] == str(tmp_path)
+    # only paths this CPU has are disabled (OpenCV marks the others with "?" and warns on them)
+    assert not any(name.endswith("?") for name in env["OPENCV_CPU_DISABLE"].split(","))
+    assert "AVX2" not in env["OPENCV_CPU_DISABLE"].split(",")
