@@ -40,7 +40,7 @@ from bgs_batch.slam.frames import (
     repeat_blocks,
     to_level,
 )
-from bgs_batch.slam.losses import predictive_variance
+from bgs_batch.slam.losses import predictive_variances
 from bgs_batch.slam.mapping import Keyframe
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
 from bgs_batch.store import Frame, FrameStore
@@ -170,10 +170,8 @@ class UncertaintyRenderer:
             w2c = Keyframe(index, level, self.poses[index]).w2c  # as the SLAM's view matrices
             out = render(self._gaussians(event.submap), w2c, level.camera, full_grad=u.full_grad)
             zero = torch.zeros(())
-            var_c = predictive_variance(out.var_color, sensor_c, out.alpha, u)
-            map_c = predictive_variance(out.var_color, zero, out.alpha, u)
-            var_d = predictive_variance(out.var_depth, sensor_d, out.alpha, u)
-            map_d = predictive_variance(out.var_depth, zero, out.alpha, u)
+            var_c, var_d = predictive_variances(out, sensor_c, sensor_d, u)
+            map_c, map_d = predictive_variances(out, zero, zero, u)
         return FrameUncertainty(
             frame=index,
             timestamp=event.timestamp,

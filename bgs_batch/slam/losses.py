@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from bgs_batch.config import TrackingConfig, UncertaintyConfig
+from bgs_batch.render import RasterOutput
 from bgs_batch.slam.blur import gaussian_window
 from bgs_batch.slam.loss_kernels import fused_ssim, l1_nll_terms, weighted_normalised_l1
 
@@ -37,6 +38,15 @@ def predictive_variance(
         unobserved, rendered.new_tensor(cfg.unobserved_variance), rendered + cfg.map_floor
     )
     return sensor + map_part
+
+
+def predictive_variances(
+    out: RasterOutput, sensor_color: torch.Tensor, sensor_depth: torch.Tensor,
+    cfg: UncertaintyConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Σ_C and Σ_D of a render (Eq. 10, 11): `predictive_variance` of its V_C and V_D."""
+    return (predictive_variance(out.var_color, sensor_color, out.alpha, cfg),
+            predictive_variance(out.var_depth, sensor_depth, out.alpha, cfg))  # fmt: skip
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

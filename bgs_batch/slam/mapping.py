@@ -21,7 +21,7 @@ from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.frames import Level
 from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY, GaussianMap
 from bgs_batch.slam.loss_kernels import l1_nll_terms
-from bgs_batch.slam.losses import mapping_loss, predictive_variance
+from bgs_batch.slam.losses import mapping_loss, predictive_variances
 from bgs_batch.slam.seeding import (
     backproject,
     far_from,
@@ -104,8 +104,7 @@ class Mapper:
             level = keyframe.level
             out = render(gmap.gaussians(), keyframe.w2c, level.camera, full_grad=u.full_grad)
             sensor_c, sensor_d = self.sensor.at_scale(level.rgb, level.depth, u.sensor_downscale)
-            var_c = predictive_variance(out.var_color, sensor_c, out.alpha, u)
-            var_d = predictive_variance(out.var_depth, sensor_d, out.alpha, u)
+            var_c, var_d = predictive_variances(out, sensor_c, sensor_d, u)
             terms = mapping_loss(out.color, out.depth, level.rgb, level.depth, var_c, var_d,
                                  gmap.params["log_scales"], m.gamma, m.ssim_weight)  # fmt: skip
             optimizer.zero_grad(set_to_none=True)
@@ -142,8 +141,7 @@ class Mapper:
                 out = render(gaussians, keyframe.w2c, level.camera, full_grad=u.full_grad)
                 sensor_c, sensor_d = self.sensor.at_scale(level.rgb, level.depth,
                                                           u.sensor_downscale)  # fmt: skip
-                var_c = predictive_variance(out.var_color, sensor_c, out.alpha, u)
-                var_d = predictive_variance(out.var_depth, sensor_d, out.alpha, u)
+                var_c, var_d = predictive_variances(out, sensor_c, sensor_d, u)
                 nll_c, nll_d = l1_nll_terms(out.color, out.depth, level.rgb, level.depth,
                                             var_c, var_d)[2:]  # fmt: skip
                 optimizer.zero_grad(set_to_none=True)

@@ -24,7 +24,7 @@ from bgs_batch.render import Gaussians, RasterOutput, render, se3_exp, shape_mat
 from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.frames import Level, block_mean, downsample
 from bgs_batch.slam.gaussian_map import GaussianMap
-from bgs_batch.slam.losses import predictive_variance, surprise_scores, tracking_loss
+from bgs_batch.slam.losses import predictive_variances, surprise_scores, tracking_loss
 
 Variances = tuple[torch.Tensor, torch.Tensor]  # sensor colour [H,W,1], sensor depth [H,W,1]
 Images = tuple[torch.Tensor, ...]  # colour, depth, Σ_C, Σ_D of one render
@@ -157,9 +157,7 @@ class Tracker:
         fixed map's shape matrices (`shape_matrices`)."""
         u = self.cfg.uncertainty
         out = render(gaussians, w2c.float(), level.camera, full_grad=u.full_grad, shapes=shapes)
-        var_c = predictive_variance(out.var_color, variances[0], out.alpha, u)
-        var_d = predictive_variance(out.var_depth, variances[1], out.alpha, u)
-        return out, var_c, var_d
+        return out, *predictive_variances(out, *variances, u)
 
     def _optimise(
         self,
