@@ -14,7 +14,7 @@ systems use for the camera, which ``bgs run`` applies unless told otherwise.
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -168,9 +168,9 @@ def detect_camera(folder: Path, options: TumOptions) -> tuple[Camera, dict[str, 
         "intrinsics_source": "--intrinsics" if options.intrinsics else source,
         "distortion_source": "--distortion" if options.distortion else (source or "none (zero)"),
     }
-    crop = found if found is not None and options.intrinsics is None else Camera(intrinsics)
-    camera = Camera(tuple(map(float, intrinsics)), tuple(map(float, distortion)),
-                    crop.crop_edge, crop.crop_edge_source)  # fmt: skip
+    camera = Camera(tuple(map(float, intrinsics)), tuple(map(float, distortion)))
+    if found is not None and options.intrinsics is None:  # the calibration's crop comes along
+        camera = replace(camera, crop_edge=found.crop_edge, crop_edge_source=found.crop_edge_source)
     return camera, provenance
 
 
@@ -291,15 +291,7 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
     undistort = _Undistorter.build(camera, size) if applied else None
     crop_edge, crop_source = _reference_crop(camera, size)
     median_depth = _median_depth(files, options.depth_scale)
-    if median_depth is not None and not (
-        PLAUSIBLE_MEDIAN_DEPTH_M[0] <= median_depth <= PLAUSIBLE_MEDIAN_DEPTH_M[1]
-    ):
-        notes.append(
-            f"warning: the depth images' median is {median_depth:.3g} m at --depth-scale "
-            f"{options.depth_scale:g} (units per metre); RGB-D sensors see "
-            f"{PLAUSIBLE_MEDIAN_DEPTH_M[0]:g}-{PLAUSIBLE_MEDIAN_DEPTH_M[1]:g} m: TUM uses 5000, "
-            "most RealSense, Azure Kinect and OpenLORIS exports 1000 (millimetres)"
-        )
+    notes += _depth_scale_warnings(median_depth, options.depth_scale)
 
     frames = [
         SourceFrame(
@@ -373,6 +365,16 @@ def _reference_crop(camera: Camera, size: tuple[int, int]) -> tuple[int, str]:
         native, actual = "x".join(map(str, TUM_IMAGE_SIZE)), "x".join(map(str, size))
         return 0, f"none: {camera.crop_edge_source} crops {native} images, these are {actual}"
     return camera.crop_edge, camera.crop_edge_source
+
+
+def _depth_scale_warnings(median_depth: float | None, scale: float) -> list[str]:
+    """A warning when the sampled median depth is implausible for an RGB-D sensor."""
+    low, high = PLAUSIBLE_MEDIAN_DEPTH_M
+    if median_depth is None or low <= median_depth <= high:
+        return []
+    return [f"warning: the depth images' median is {median_depth:.3g} m at --depth-scale "
+            f"{scale:g} (units per metre); RGB-D sensors see {low:g}-{high:g} m: TUM uses "
+            "5000, most RealSense, Azure Kinect and OpenLORIS exports 1000 (millimetres)"]
 
 
 def _median_depth(files: list[tuple[Path, Path]], scale: float) -> float | None:
