@@ -148,18 +148,17 @@ def make_store(case: str, workdir: Path) -> Path:
     """The case's frame store, converted with the defaults a user gets."""
     from conftest import TUM_EXCERPT
 
-    from converters.pipeline import write_store
     from converters.synthetic import SynthConfig, synthesize
-    from converters.tum import TumOptions, plan_tum
+    from converters.tum import TumOptions, convert_tum
 
     if case == "synthetic":
-        folder = synthesize(workdir / "seq", SynthConfig(frames=16, width=160, height=120, seed=3))
-        plan = plan_tum(folder, TumOptions())
+        config = SynthConfig(frames=16, width=160, height=120, seed=3)
+        folder, options = synthesize(workdir / "seq", config), TumOptions()
     elif case == "tum_fr1_rpy_30":
-        plan = plan_tum(TUM_EXCERPT, TumOptions(max_frames=30))
+        folder, options = TUM_EXCERPT, TumOptions(max_frames=30)
     else:
         raise SystemExit(f"unknown golden case {case!r}")
-    return write_store(plan.frames, workdir / f"{case}.h5", plan.meta).path
+    return convert_tum(folder, workdir / f"{case}.h5", options)
 
 
 def run_case(case: str, workdir: Path, overrides: list[str]) -> dict[str, Any]:
