@@ -15,14 +15,14 @@ Layout::
 Frames are deflated in worker threads with ISA-L (5x faster than zlib at level 1, and it
 releases the GIL) and written as raw chunks, so conversion uses every core; the files stay plain
 gzip(+shuffle) HDF5 that any HDF5 tool reads.
-The writer builds ``NAME.h5.tmp`` and renames it only once complete and valid. The reader streams
-frames (never the whole sequence) and prefetches/decompresses on a small thread pool.
+The writer builds ``NAME.h5.tmp`` and commits it (`atomic.commit`) only once complete and valid.
+The reader streams frames (never the whole sequence) and prefetches/decompresses on a small
+thread pool.
 """
 
 from __future__ import annotations
 
 import json
-import os
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -34,6 +34,7 @@ import numpy as np
 from isal import isal_zlib
 
 from bgs_batch import __version__
+from bgs_batch.atomic import commit
 from bgs_batch.errors import InputError, OutputExistsError
 
 SCHEMA_VERSION = 1
@@ -256,10 +257,7 @@ class FrameStoreWriter:
         )
         validate(f, self.tmp)
         f.close()
-        with open(self.tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(self.tmp, self.path)
-        fsync_dir(self.path.parent)
+        commit(self.tmp, self.path)
         return self.path
 
     def abort(self) -> None:
@@ -267,15 +265,6 @@ class FrameStoreWriter:
         if self._file:
             self._file.close()
         self.tmp.unlink(missing_ok=True)
-
-
-def fsync_dir(folder: Path) -> None:
-    """Make a rename inside `folder` durable (POSIX: fsync the directory itself)."""
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def validate(f: h5py.File, path: Path | str) -> None:

@@ -18,9 +18,6 @@ time stamps are offset only so that readers must associate the two streams.
 from __future__ import annotations
 
 import math
-import os
-import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +26,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 
+from bgs_batch.atomic import atomic_dir
 from bgs_batch.errors import InputError, OutputExistsError
 from bgs_batch.geometry import matrix_to_quat_xyzw
 from bgs_batch.signals import interruptible
@@ -498,14 +496,9 @@ def synthesize(
     out_dir = Path(out_dir)
     _check_replaceable(out_dir, overwrite)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    with interruptible():
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
-        try:
-            _write_sequence(tmp, config, progress)
-            _replace(tmp, out_dir, overwrite)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
+    with interruptible(), atomic_dir(out_dir) as tmp:
+        _write_sequence(tmp, config, progress)
+        _check_replaceable(out_dir, overwrite)  # again: it may have appeared while rendering
     return out_dir
 
 
@@ -562,15 +555,3 @@ def _check_replaceable(out_dir: Path, overwrite: bool) -> None:
             f"{out_dir} is not a TUM sequence (no rgb.txt), so --overwrite will not delete it; "
             "choose another output directory or remove it yourself"
         )
-
-
-def _replace(tmp: Path, out_dir: Path, overwrite: bool) -> None:
-    """Move the finished tmp directory to out_dir, replacing a previous out_dir if allowed."""
-    if out_dir.exists() or out_dir.is_symlink():
-        _check_replaceable(out_dir, overwrite)  # again: it may have appeared while rendering
-        old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".old", dir=out_dir.parent))
-        os.replace(out_dir, old / "previous")
-        os.replace(tmp, out_dir)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, out_dir)

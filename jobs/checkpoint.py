@@ -1,9 +1,9 @@
 """Checkpoints of a running job: atomic, checksummed, the newest two kept (DESIGN.md §6).
 
-A checkpoint is one file ``checkpoints/<frames done>-<sha256 prefix>.pt`` written to a temporary
-name, fsynced and renamed, so a crash never leaves a half-written file under a final name, and a
-file damaged later (truncated copy, full disk) fails its checksum and is skipped in favour of
-the previous one. Contents are tensors and plain values: ``torch.load(weights_only=True)``.
+A checkpoint is one file ``checkpoints/<frames done>-<sha256 prefix>.pt`` written with
+`bgs_batch.atomic`, so a crash never leaves a half-written file under a final name, and a file
+damaged later (truncated copy, full disk) fails its checksum and is skipped in favour of the
+previous one. Contents are tensors and plain values: ``torch.load(weights_only=True)``.
 """
 
 from __future__ import annotations
@@ -11,13 +11,12 @@ from __future__ import annotations
 import hashlib
 import io
 import logging
-import os
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from bgs_batch.store import fsync_dir
+from bgs_batch import atomic
 
 CHECKPOINT_DIR = "checkpoints"
 KEEP = 2
@@ -35,17 +34,7 @@ def write_checkpoint(job_dir: Path, frames_done: int, state: dict[str, Any]) -> 
     data = buffer.getvalue()
     digest = hashlib.sha256(data).hexdigest()[:DIGEST_CHARS]
     path = folder / f"{frames_done:08d}-{digest}.pt"
-    tmp = folder / f".{path.name}.tmp"
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except OSError:
-        tmp.unlink(missing_ok=True)  # e.g. disk full: the previous checkpoints stay intact
-        raise
-    fsync_dir(folder)
+    atomic.write_bytes(path, data)  # e.g. disk full: the previous checkpoints stay intact
     for old in sorted(folder.glob("*.pt"))[:-KEEP]:
         old.unlink()
     return path

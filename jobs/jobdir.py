@@ -19,7 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from bgs_batch import __version__
+from bgs_batch import __version__, atomic
 from bgs_batch.errors import BgsError
 
 JOB_FILE = "job.json"
@@ -102,9 +102,7 @@ def check_or_write_record(job_dir: Path, record: dict[str, Any], force: bool) ->
             )
         if old == record:
             return
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(record, indent=2, sort_keys=True))
-    os.replace(tmp, path)
+    atomic.write_text(path, json.dumps(record, indent=2, sort_keys=True))
 
 
 def _pid_alive(pid: int) -> bool:

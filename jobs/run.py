@@ -30,6 +30,7 @@ import numba
 import numpy as np
 import torch
 
+from bgs_batch.atomic import atomic_file, write_text
 from bgs_batch.config import Config, check_crop, for_store
 from bgs_batch.metrics import ate
 from bgs_batch.slam import Slam
@@ -98,7 +99,7 @@ def run_job(
                 return _run(store, job_dir, cfg, sources, max_frames, on_frame)
             except BaseException as err:  # recorded for `bgs status`, then re-raised
                 error = {"type": type(err).__name__, "message": str(err)}
-                (job_dir / ERROR_FILE).write_text(json.dumps(error))
+                write_text(job_dir / ERROR_FILE, json.dumps(error))
                 raise
 
 
@@ -113,7 +114,7 @@ def _run(
     if (job_dir / SUMMARY_FILE).exists():  # finished before: nothing to do (array reruns)
         return RunSummary(**json.loads((job_dir / SUMMARY_FILE).read_text()))
     document = {"settings": cfg.to_dict(), "sources": sources}
-    (job_dir / "config.json").write_text(json.dumps(document, indent=2, sort_keys=True))
+    write_text(job_dir / "config.json", json.dumps(document, indent=2, sort_keys=True))
     with stop_requests() as stop:
         n = len(store) if max_frames is None else min(max_frames, len(store))
         slam = Slam(cfg, store.intrinsics, job_dir / "submaps")
@@ -133,11 +134,13 @@ def _run(
                 if stop.requested and done < n:
                     raise Preempted(stop.requested, done, job_dir)
         slam.finish(store.__getitem__)
-        torch.save(slam.sensor.state_dict(), job_dir / "sensor_net.pt")
+        with atomic_file(job_dir / "sensor_net.pt") as tmp:
+            torch.save(slam.sensor.state_dict(), tmp)
         timestamps = store.timestamps[:n]
         poses = np.stack(slam.poses)
         gt = store.poses_gt[:n] if store.has_gt else None
-    write_tum(job_dir / "trajectory.txt", timestamps, poses)
+    with atomic_file(job_dir / "trajectory.txt") as tmp:
+        write_tum(tmp, timestamps, poses)
     seconds = time.perf_counter() - start
     ate_rmse = ate(poses[:, :3, 3], gt[:, :3, 3])["rmse"] if gt is not None else None
     summary = RunSummary(
@@ -150,7 +153,7 @@ def _run(
         stage_seconds=asdict(slam.timings),
         ate_rmse_m=ate_rmse,
     )
-    (job_dir / SUMMARY_FILE).write_text(json.dumps(summary.as_dict(), indent=2))
+    write_text(job_dir / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2))
     return summary
 
 
@@ -171,5 +174,5 @@ def _resume(slam: Slam, store: FrameStore, job_dir: Path) -> tuple[int, float]:
         seconds = float(state["seconds"])
     log_path = job_dir / LOG_FILE
     lines = log_path.read_text().splitlines(keepends=True)[:done] if log_path.exists() else []
-    log_path.write_text("".join(lines))
+    write_text(log_path, "".join(lines))
     return done, seconds

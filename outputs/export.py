@@ -31,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
+from bgs_batch.atomic import atomic_dir, atomic_file
 from bgs_batch.errors import InputError
 from outputs import plots
-from outputs.atomic import atomic_dir, atomic_file
 from outputs.colormap import write_png
 from outputs.evaluate import (
     MIN_ALIGNED_FRAMES,

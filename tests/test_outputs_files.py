@@ -12,7 +12,6 @@ import torch
 from bgs_batch.config import UncertaintyConfig
 from bgs_batch.errors import InputError
 from bgs_batch.render import Camera
-from outputs.atomic import TEMP_PREFIX, atomic_dir, atomic_file
 from outputs.ause import depth_sparsification, depth_sparsifications
 from outputs.colormap import NAN_COLOUR, VARIANCE_MAP, Scale, colorize, tile
 from outputs.lpips import Lpips, load_lpips
@@ -47,34 +46,6 @@ def fake_frame(index: int, h: int = 12, w: int = 16, seed: int = 0) -> FrameUnce
         var_color=sensor_c + map_c, var_color_map=map_c, var_color_sensor=sensor_c,
         var_depth=sensor_d + map_d, var_depth_map=map_d, var_depth_sensor=sensor_d,
     )  # fmt: skip
-
-
-# ---------------------------------------------------------------- atomic writes
-
-
-def test_atomic_file_and_dir_keep_the_old_output_on_failure(tmp_path):
-    target = tmp_path / "out.txt"
-    target.write_text("old")
-    with pytest.raises(RuntimeError), atomic_file(target) as tmp:
-        tmp.write_text("half")
-        raise RuntimeError("crash")
-    assert target.read_text() == "old"
-    with atomic_file(target) as tmp:
-        tmp.write_text("new")
-    assert target.read_text() == "new"
-
-    folder = tmp_path / "dir"
-    folder.mkdir()
-    (folder / "stale.png").write_text("x")
-    with pytest.raises(RuntimeError), atomic_dir(folder) as tmp:
-        (tmp / "a.png").write_text("half")
-        raise RuntimeError("crash")
-    assert sorted(p.name for p in folder.iterdir()) == ["stale.png"]
-    with atomic_dir(folder) as tmp:
-        (tmp / "a.png").write_text("new")
-    assert sorted(p.name for p in folder.iterdir()) == ["a.png"]  # replaced as a whole
-    assert not [p for p in tmp_path.iterdir() if p.name.startswith(TEMP_PREFIX)]
-    assert oct(target.stat().st_mode & 0o077) != "0o0"  # usual permissions, not mkstemp's 0600
 
 
 # ---------------------------------------------------------------- HDF5 layout

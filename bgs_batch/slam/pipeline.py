@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from bgs_batch.atomic import atomic_file
 from bgs_batch.config import Config
 from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.frames import Level, camera_for, crop_and_clip, downsample, to_level
@@ -193,8 +194,9 @@ class Slam:
         path = self.submap_dir / f"{index:06d}.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
         keyframes = [k.frame for k in self.active_keyframes]
-        torch.save({"params": self.gmap.state_dict(), "keyframes": torch.tensor(keyframes),
-                    "first_frame": self.submap_first_frame}, path)  # fmt: skip
+        with atomic_file(path) as tmp:
+            torch.save({"params": self.gmap.state_dict(), "keyframes": torch.tensor(keyframes),
+                        "first_frame": self.submap_first_frame}, tmp)  # fmt: skip
         self.submaps.append(SubmapRecord(index, str(path), self.submap_first_frame,
                                          last_frame, keyframes, len(self.gmap)))  # fmt: skip
         self.gmap = GaussianMap()

@@ -15,12 +15,12 @@ repeated refinement starts from the same values.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from bgs_batch.atomic import atomic_file
 from bgs_batch.geometry import matrix_to_quat_xyzw
 from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY
 
@@ -67,7 +67,8 @@ def write_correction(path: str | Path, correction: np.ndarray) -> None:
     data[RAW_KEY] = raw
     data["params"] = transform_params(raw, correction)
     data[CORRECTION_KEY] = torch.from_numpy(np.array(correction, np.float64))
-    _save_atomic(data, path)
+    with atomic_file(path) as tmp:
+        torch.save(data, tmp)
 
 
 def load_mapped(path: str | Path) -> dict[str, torch.Tensor]:
@@ -84,14 +85,8 @@ def write_uncertainty(path: str | Path, logits: torch.Tensor) -> None:
     data = torch.load(path, weights_only=True)
     data[RAW_KEY] = data.get(RAW_KEY, data["params"])
     data["params"] = {**data["params"], UNCERTAINTY_KEY: logits.clone()}
-    _save_atomic(data, path)
-
-
-def _save_atomic(data: dict, path: Path) -> None:
-    """A crash leaves the old or the new file, never half of one."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(data, tmp)
-    os.replace(tmp, path)
+    with atomic_file(path) as tmp:
+        torch.save(data, tmp)
 
 
 def camera_shift(delta: np.ndarray, c2w: np.ndarray) -> float:

@@ -1,0 +1,98 @@
+"""All-or-nothing files and folders: built under a temporary name beside the target, then renamed.
+
+Every writer in the project (frame stores, checkpoints, job records, submap files, exports) gives
+the same guarantee through this module: a reader, a crash or a power cut sees either the previous
+complete file or the new complete one, never half of one. The data is fsynced before the rename
+and the folder after it, so the rename is durable; on any error, also Ctrl-C, the temporary is
+removed and the target is kept. Temporary names start with ``.tmp-`` on the same file system, so
+`os.replace` is atomic; they get the usual permissions (umask), not the private ones of `tempfile`.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+TEMP_PREFIX = ".tmp-"
+
+
+def temp_name(path: Path, tag: str = "") -> Path:
+    """A unique, hidden name beside `path`."""
+    return path.with_name(f"{TEMP_PREFIX}{path.name}.{tag}{os.getpid()}.{uuid.uuid4().hex[:8]}")
+
+
+def fsync_path(path: Path) -> None:
+    """Flush a file's data, or a folder's entries, to the disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def commit(tmp: Path, path: Path) -> None:
+    """Make the finished file `tmp` durable and move it to `path` in one step."""
+    fsync_path(tmp)
+    os.replace(tmp, path)
+    fsync_path(path.parent)
+
+
+@contextmanager
+def atomic_file(path: Path) -> Iterator[Path]:
+    """Yield a temporary path to write; on success it replaces `path`, on error it is removed."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temp_name(path)
+    tmp.touch(exist_ok=False)
+    try:
+        yield tmp
+        commit(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_bytes(path: Path, data: bytes) -> None:
+    """Write `data` to `path` atomically."""
+    with atomic_file(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write `text` (UTF-8) to `path` atomically."""
+    write_bytes(path, text.encode())
+
+
+@contextmanager
+def atomic_dir(path: Path) -> Iterator[Path]:
+    """Yield an empty temporary folder; on success it replaces the folder `path` as a whole.
+
+    The old folder (or a symlink in its place) is moved aside first and deleted after the new one
+    is in place, so no file of an earlier output lingers; on error the temporary folder is
+    removed and `path` is kept.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temp_name(path)
+    tmp.mkdir()
+    try:
+        yield tmp
+        for folder, _, files in os.walk(tmp):
+            for name in files:
+                fsync_path(Path(folder, name))
+            fsync_path(Path(folder))
+        old = None
+        if path.exists() or path.is_symlink():
+            old = temp_name(path, "old.")
+            os.replace(path, old)
+        os.replace(tmp, path)
+        fsync_path(path.parent)
+        if old is not None and old.is_symlink():
+            old.unlink()
+        elif old is not None:
+            shutil.rmtree(old)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
