@@ -9,7 +9,8 @@ submaps are frozen and written to disk, so memory stays bounded. Ground truth is
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,6 +46,13 @@ class Timings:
 
     def add(self, stage: str, seconds: float) -> None:
         setattr(self, stage, getattr(self, stage) + seconds)
+
+    @contextmanager
+    def measure(self, stage: str) -> Iterator[None]:
+        """Add the wall time of the ``with`` body to `stage`."""
+        start = time.perf_counter()
+        yield
+        self.add(stage, time.perf_counter() - start)
 
 
 @dataclass
@@ -88,63 +96,65 @@ class Slam:
         return full, downsample(full, cfg.mapping.downscale)
 
     def process(self, frame: Frame) -> dict[str, Any]:
-        """Track, select and map one frame; return its log event."""
-        cfg = self.cfg
+        """Track, select and map one frame; return its log event (steps 1-5 of `bgs_batch.slam`)."""
         totals_before = asdict(self.timings)
         full, level = self.prepare(frame)
         event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
+        with self.timings.measure("sensor"), torch.no_grad():
+            scale = self.cfg.uncertainty.sensor_downscale
+            sensor_c, sensor_d = self.sensor.at_scale(level.rgb, level.depth, scale)
+        c2w, score_c, score_d = self._track(full, sensor_c, sensor_d, event)
+        self.poses.append(c2w)
+        first_of_submap = not self.active_keyframes
+        if not first_of_submap and self._should_switch(frame.index, c2w):
+            c2w = self._switch_submap(frame.index, event)
+            first_of_submap = True
+        decision = self.selector.decide(frame.index, score_c, score_d, first_of_submap)
+        event.update(decision.as_dict())
+        if decision.keyframe:
+            self._add_keyframe(frame.index, full, level, c2w, first_of_submap, event)
+        event.update(submap=len(self.submaps), gaussians=len(self.gmap),
+                     pose=[float(x) for x in c2w[:3].ravel()],
+                     stage_s=self._stages_since(totals_before))  # fmt: skip
+        return event
 
-        start = time.perf_counter()
-        with torch.no_grad():
-            sensor_c, sensor_d = self.sensor.at_scale(level.rgb, level.depth,
-                                                      cfg.uncertainty.sensor_downscale)  # fmt: skip
-        self.timings.add("sensor", time.perf_counter() - start)
-
-        score_c = score_d = None
+    def _track(self, full: Level, sensor_c: torch.Tensor, sensor_d: torch.Tensor,
+               event: dict[str, Any]) -> tuple[np.ndarray, float | None, float | None]:  # fmt: skip
+        """The frame's camera-to-world pose and its two surprise scores (none for frame 0)."""
         if not self.poses:
-            c2w = np.eye(4)  # the first camera defines the world frame
-        else:
-            start = time.perf_counter()
+            return np.eye(4), None, None  # the first camera defines the world frame
+        with self.timings.measure("tracking"):
             init = self._initial_pose()
             result = self.tracker.track(self.gmap, full, sensor_c, sensor_d,
                                         torch.linalg.inv(init))  # fmt: skip
             # C order always: LAPACK returns column-major, and a checkpoint restores row-major;
             # the layout changes BLAS's summation order, so resuming would drift by an ulp
             c2w = np.ascontiguousarray(torch.linalg.inv(result.w2c).numpy())
-            score_c, score_d = result.score_color, result.score_depth
             event.update(track_loss=result.loss, track_iterations=result.iterations,
                          track_doubled=result.doubled)  # fmt: skip
-            self.timings.add("tracking", time.perf_counter() - start)
-        self.poses.append(c2w)
+        return c2w, result.score_color, result.score_depth
 
-        first_of_submap = not self.active_keyframes
-        if not first_of_submap and self._should_switch(frame.index, c2w):
-            start = time.perf_counter()
-            finished = self.active_keyframes
-            self._finish_submap(last_frame=frame.index - 1)
-            first_of_submap = True
-            self.timings.add("submaps", time.perf_counter() - start)
-            c2w = self._close_loops(finished, event)  # may correct every pose
+    def _switch_submap(self, index: int, event: dict[str, Any]) -> np.ndarray:
+        """Freeze the active submap, start a new one at frame `index` and close loops; returns
+        the (possibly corrected) current pose."""
+        finished = self.active_keyframes
+        with self.timings.measure("submaps"):
+            self._finish_submap(last_frame=index - 1)
+        return self._close_loops(finished, event)  # may correct every pose
 
-        decision = self.selector.decide(frame.index, score_c, score_d, first_of_submap)
-        event.update(decision.as_dict())
-        if decision.keyframe:
-            start = time.perf_counter()
-            self.loop_closer.add_keyframe(frame.index, len(self.submaps), full, c2w)
-            self.timings.add("loop_closure", time.perf_counter() - start)
-            start = time.perf_counter()
-            self.active_keyframes.append(Keyframe(frame.index, level, c2w))
+    def _add_keyframe(self, index: int, full: Level, level: Level, c2w: np.ndarray,
+                      first_of_submap: bool, event: dict[str, Any]) -> None:  # fmt: skip
+        """Register the keyframe for loop closure and map the active submap with it."""
+        with self.timings.measure("loop_closure"):
+            self.loop_closer.add_keyframe(index, len(self.submaps), full, c2w)
+        with self.timings.measure("mapping"):
+            self.active_keyframes.append(Keyframe(index, level, c2w))
             if first_of_submap:
-                self.submap_first_frame = frame.index
+                self.submap_first_frame = index
             stats = self.mapper.map(self.gmap, self.active_keyframes, first_of_submap, self.rng)
-            self.keyframe_frames.append(frame.index)
+            self.keyframe_frames.append(index)
             self.mapping_calls += 1
             event.update(map_added=stats.added, map_pruned=stats.pruned, map_loss=stats.loss)
-            self.timings.add("mapping", time.perf_counter() - start)
-        event.update(submap=len(self.submaps), gaussians=len(self.gmap),
-                     pose=[float(x) for x in c2w[:3].ravel()],
-                     stage_s=self._stages_since(totals_before))  # fmt: skip
-        return event
 
     def _initial_pose(self) -> torch.Tensor:
         """The next frame's constant-velocity start. After an injected drift it starts from the
@@ -172,18 +182,17 @@ class Slam:
     def _close_loops(self, finished: list[Keyframe], event: dict[str, Any] | None) -> np.ndarray:
         """Loop closure after a submap was frozen (it may correct all poses so far), then the
         optional injected drift of the new submap's first pose; returns the current pose."""
-        start = time.perf_counter()
-        report = self.loop_closer.on_submap_finished(self.submaps, finished, self.poses,
-                                                     self.sensor)  # fmt: skip
-        if report is not None and event is not None:
-            event["loop_closure"] = report
-        lc = self.cfg.loop_closure
-        if event is not None:  # a switch (not the end of the run): the drift lever
-            before = self.poses[-1]
-            self.poses[-1] = inject_drift(before, lc.inject_drift_deg, lc.inject_drift_m)
-            if self.poses[-1] is not before and len(self.poses) > 1:
-                self.drifted_prev = self.poses[-1] @ np.linalg.inv(before) @ self.poses[-2]
-        self.timings.add("loop_closure", time.perf_counter() - start)
+        with self.timings.measure("loop_closure"):
+            report = self.loop_closer.on_submap_finished(self.submaps, finished, self.poses,
+                                                         self.sensor)  # fmt: skip
+            if report is not None and event is not None:
+                event["loop_closure"] = report
+            lc = self.cfg.loop_closure
+            if event is not None:  # a switch (not the end of the run): the drift lever
+                before = self.poses[-1]
+                self.poses[-1] = inject_drift(before, lc.inject_drift_deg, lc.inject_drift_m)
+                if self.poses[-1] is not before and len(self.poses) > 1:
+                    self.drifted_prev = self.poses[-1] @ np.linalg.inv(before) @ self.poses[-2]
         return self.poses[-1]
 
     # --- end loop closure hook ----------------------------------------------------------------
@@ -262,10 +271,9 @@ class Slam:
             if self.cfg.loop_closure.final:  # LoopSplat's lc.final
                 self._close_loops(finished, event=None)
         if self.cfg.uncertainty.refine_passes:
-            start = time.perf_counter()
-            for record in self.submaps:
-                self._refine_submap(record, read_frame)
-            self.timings.add("refinement", time.perf_counter() - start)
+            with self.timings.measure("refinement"):
+                for record in self.submaps:
+                    self._refine_submap(record, read_frame)
 
     def _refine_submap(self, record: SubmapRecord, read_frame: Callable[[int], Frame]) -> None:
         """`Mapper.refine_uncertainty` on a frozen submap (at its final pose), starting from the
