@@ -98,27 +98,15 @@ def plan_bag(path: Path, options: BagOptions) -> BagPlan:
 
 def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
     index = index_bag(reader, path, options.pose_topic, options.pose_frame)
-    rgb = choose_image_topic(index, COLOR, options.rgb_topic)
-    depth = choose_image_topic(index, DEPTH, options.depth_topic)
-    rgb_info = choose_camera_info(index, rgb.topic, depth.topic, options.info_topic, "--info-topic")
-    if rgb_info is None:
-        raise InputError(
-            f"{path}: no CameraInfo topic belongs to {rgb.topic}, so the "
-            "intrinsics are unknown; pass --info-topic"
-        )
-    depth_info = choose_camera_info(
-        index, depth.topic, rgb.topic, options.depth_info_topic, "--depth-info-topic"
-    )
+    rgb, depth, rgb_info, depth_info = _choose_topics(index, path, options)
     pairs, provenance, association_note = _associate(index, rgb, depth, options)
     stamps = np.asarray(rgb.stamps, np.int64)[pairs[:, 0]] / NS_PER_S
-
+    camera = index.camera_infos[rgb_info]
     depth_scale, scale_source = _depth_scale(index, depth, options)
     registration, registration_provenance = _plan_registration(
-        index, rgb, depth, index.camera_infos[rgb_info], depth_info, depth_scale
+        index, rgb, depth, camera, depth_info, depth_scale
     )
     poses, gt_provenance = _ground_truth(index, options, stamps)
-    camera = index.camera_infos[rgb_info]
-    distortion = (camera.distortion + (0.0,) * STORED_DISTORTION_TERMS)[:STORED_DISTORTION_TERMS]
     provenance.update(
         storage=index.storage,
         rgb_topic=rgb.describe(),
@@ -144,7 +132,7 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
         sequence=path.resolve().stem,
         intrinsics=camera.matrix,
         depth_scale=depth_scale,
-        distortion=distortion,
+        distortion=(camera.distortion + (0.0,) * STORED_DISTORTION_TERMS)[:STORED_DISTORTION_TERMS],
         has_gt=poses is not None,
         provenance=provenance,
     )
@@ -153,6 +141,25 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
     frames = _stream_frames(reader, path, rgb, depth, pairs, stamps, poses, decoder)
     weakref.finalize(frames, reader.close)  # a second pass that never starts
     return BagPlan(frames, len(pairs), meta, (association_note,))
+
+
+def _choose_topics(
+    index: BagIndex, path: Path, options: BagOptions
+) -> tuple[ImageTopic, ImageTopic, str, str | None]:
+    """The colour and depth image topics and their CameraInfo topics (the colour one must exist:
+    it gives the intrinsics)."""
+    rgb = choose_image_topic(index, COLOR, options.rgb_topic)
+    depth = choose_image_topic(index, DEPTH, options.depth_topic)
+    rgb_info = choose_camera_info(index, rgb.topic, depth.topic, options.info_topic, "--info-topic")
+    if rgb_info is None:
+        raise InputError(
+            f"{path}: no CameraInfo topic belongs to {rgb.topic}, so the "
+            "intrinsics are unknown; pass --info-topic"
+        )
+    depth_info = choose_camera_info(
+        index, depth.topic, rgb.topic, options.depth_info_topic, "--depth-info-topic"
+    )
+    return rgb, depth, rgb_info, depth_info
 
 
 def choose_image_topic(index: BagIndex, role: str, requested: str | None) -> ImageTopic:

@@ -258,40 +258,21 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
     ``--skip-bad-frames`` can drop them.
     """
     folder = Path(folder)
-    if not folder.is_dir():
-        raise InputError(f"{folder} is not a folder; pass a TUM RGB-D sequence folder")
-    if options.stride < 1 or (options.max_frames is not None and options.max_frames < 1):
-        raise InputError("--stride and --max-frames must be at least 1")
-    if not options.depth_scale > 0:
-        raise InputError(f"--depth-scale must be positive, got {options.depth_scale}")
-    rgb_t, rgb_names = read_file_list(folder / "rgb.txt")
-    depth_t, depth_names = read_file_list(folder / "depth.txt")
-    associated = associate(rgb_t, depth_t, options.tolerance)
-    if len(associated) == 0:
-        raise InputError(
-            f"{folder}: no RGB frame has a depth frame within {options.tolerance} s; check that "
-            "rgb.txt and depth.txt belong to the same recording, or raise --tolerance"
-        )
-    notes = [association_summary(rgb_t, depth_t, options.tolerance, len(associated))]
-    pairs = associated[:: options.stride][: options.max_frames]
-    stamps = rgb_t[pairs[:, 0]]
-
+    _check_options(folder, options)
+    pairs = _Pairs.read(folder, options)
     gt_file = folder / "groundtruth.txt"
     poses = None
     if gt_file.is_file():
-        poses = interpolate_poses(*read_groundtruth(gt_file), stamps, options.gt_max_gap)
-
-    files = [(folder / rgb_names[i], folder / depth_names[j]) for i, j in pairs.tolist()]
+        poses = interpolate_poses(*read_groundtruth(gt_file), pairs.stamps, options.gt_max_gap)
 
     camera, camera_provenance = detect_camera(folder, options)
-    size = _image_size(files)
+    size = _image_size(pairs.files)
     # a published calibration holds for the camera's own image size only
     fits = options.distortion is not None or size == TUM_IMAGE_SIZE
     applied = options.undistort and any(camera.distortion) and fits
     undistort = _Undistorter.build(camera, size) if applied else None
     crop_edge, crop_source = _reference_crop(camera, size)
-    median_depth = _median_depth(files, options.depth_scale)
-    notes += _depth_scale_warnings(median_depth, options.depth_scale)
+    median_depth = _median_depth(pairs.files, options.depth_scale)
 
     frames = [
         SourceFrame(
@@ -300,18 +281,10 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
             pose_gt=None if poses is None or not np.all(np.isfinite(poses[k])) else poses[k],
             load=partial(load_pair, rgb, depth, undistort),
         )
-        for k, ((rgb, depth), t) in enumerate(zip(files, stamps, strict=True))
+        for k, ((rgb, depth), t) in enumerate(zip(pairs.files, pairs.stamps, strict=True))
     ]
-    diffs = np.abs(rgb_t[pairs[:, 0]] - depth_t[pairs[:, 1]])
     provenance = {
-        "association": "order-preserving one-to-one, most pairs then least summed |dt|",
-        "association_tolerance_s": options.tolerance,
-        "association_max_diff_s": float(diffs.max()),
-        "rgb_listed": len(rgb_t),
-        "depth_listed": len(depth_t),
-        "associated": len(associated),
-        "stride": options.stride,
-        "max_frames": options.max_frames,
+        **pairs.provenance(options),
         "depth_scale_source": (
             "TUM convention (5000 units per metre)"
             if options.depth_scale == TUM_DEPTH_SCALE else "--depth-scale"
@@ -320,13 +293,8 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
         "undistort": bool(applied),
         "crop_edge_source": crop_source,
         **camera_provenance,
+        **_gt_provenance(poses, options.gt_max_gap),
     }  # fmt: skip
-    if poses is not None:
-        provenance.update(
-            gt_source="groundtruth.txt",
-            gt_interpolation=f"linear position, slerp rotation, bracket <= {options.gt_max_gap} s",
-            gt_frames=int(np.all(np.isfinite(poses), axis=(1, 2)).sum()),
-        )
     meta = StoreMeta(
         source_format="tum",
         source_path=str(folder.resolve()),
@@ -339,7 +307,74 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
         crop_edge=crop_edge,
         provenance=provenance,
     )
-    return TumPlan(frames, meta, tuple(notes))
+    notes = (pairs.summary, *_depth_scale_warnings(median_depth, options.depth_scale))
+    return TumPlan(frames, meta, notes)
+
+
+def _check_options(folder: Path, options: TumOptions) -> None:
+    """Refuse a missing folder and impossible options before any file is read."""
+    if not folder.is_dir():
+        raise InputError(f"{folder} is not a folder; pass a TUM RGB-D sequence folder")
+    if options.stride < 1 or (options.max_frames is not None and options.max_frames < 1):
+        raise InputError("--stride and --max-frames must be at least 1")
+    if not options.depth_scale > 0:
+        raise InputError(f"--depth-scale must be positive, got {options.depth_scale}")
+
+
+@dataclass(frozen=True)
+class _Pairs:
+    """The associated (colour, depth) files that will be converted, after stride and limit."""
+
+    rgb_t: np.ndarray  # every listed colour timestamp
+    depth_t: np.ndarray  # every listed depth timestamp
+    associated: int  # pairs before stride and limit
+    chosen: np.ndarray  # (N, 2) indices into the two lists
+    files: list[tuple[Path, Path]]
+    summary: str  # the line `bgs convert` prints about what the association dropped
+
+    @classmethod
+    def read(cls, folder: Path, options: TumOptions) -> _Pairs:
+        rgb_t, rgb_names = read_file_list(folder / "rgb.txt")
+        depth_t, depth_names = read_file_list(folder / "depth.txt")
+        associated = associate(rgb_t, depth_t, options.tolerance)
+        if len(associated) == 0:
+            raise InputError(
+                f"{folder}: no RGB frame has a depth frame within {options.tolerance} s; check "
+                "that rgb.txt and depth.txt belong to the same recording, or raise --tolerance"
+            )
+        chosen = associated[:: options.stride][: options.max_frames]
+        files = [(folder / rgb_names[i], folder / depth_names[j]) for i, j in chosen.tolist()]
+        summary = association_summary(rgb_t, depth_t, options.tolerance, len(associated))
+        return cls(rgb_t, depth_t, len(associated), chosen, files, summary)
+
+    @property
+    def stamps(self) -> np.ndarray:
+        """The frames' timestamps: their colour images'."""
+        return self.rgb_t[self.chosen[:, 0]]
+
+    def provenance(self, options: TumOptions) -> dict[str, Any]:
+        diffs = np.abs(self.stamps - self.depth_t[self.chosen[:, 1]])
+        return {
+            "association": "order-preserving one-to-one, most pairs then least summed |dt|",
+            "association_tolerance_s": options.tolerance,
+            "association_max_diff_s": float(diffs.max()),
+            "rgb_listed": len(self.rgb_t),
+            "depth_listed": len(self.depth_t),
+            "associated": self.associated,
+            "stride": options.stride,
+            "max_frames": options.max_frames,
+        }
+
+
+def _gt_provenance(poses: np.ndarray | None, max_gap: float) -> dict[str, Any]:
+    """Where the ground truth came from and how many frames have it (nothing without it)."""
+    if poses is None:
+        return {}
+    return {
+        "gt_source": "groundtruth.txt",
+        "gt_interpolation": f"linear position, slerp rotation, bracket <= {max_gap} s",
+        "gt_frames": int(np.all(np.isfinite(poses), axis=(1, 2)).sum()),
+    }
 
 
 def convert_tum(folder: Path, output: Path, options: TumOptions | None = None,
