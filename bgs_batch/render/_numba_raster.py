@@ -159,6 +159,39 @@ def bin_tiles(rects, order, tiles_x, n_tiles):
     return tile_start, isect_gauss, isect_slot, gauss_start
 
 
+@numba.njit(cache=True, inline="always")
+def tile_grid(height, width):
+    """(tiles per row, tiles) of the ``TILE_SIZE`` squares that cover a height × width image."""
+    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
+    return tiles_x, tiles_x * ((height + TILE_SIZE - 1) // TILE_SIZE)
+
+
+@numba.njit(cache=True, inline="always")
+def tile_box(tile, tiles_x, height, width):
+    """The tile's pixels ``px0:px1``, ``py0:py1``, clipped to the image."""
+    px0 = (tile % tiles_x) * TILE_SIZE
+    py0 = (tile // tiles_x) * TILE_SIZE
+    return px0, py0, min(px0 + TILE_SIZE, width), min(py0 + TILE_SIZE, height)
+
+
+@numba.njit(cache=True, inline="always")
+def lanes_like(values):
+    """Scratch for one value per lane of a tile, of `values`' dtype."""
+    return np.empty(TILE_PIXELS, values.dtype)
+
+
+@numba.njit(cache=True, inline="always")
+def feature_lanes_like(values):
+    """Scratch for ``N_FEAT`` values per lane of a tile, of `values`' dtype."""
+    return np.empty((N_FEAT, TILE_PIXELS), values.dtype)
+
+
+@numba.njit(cache=True, inline="always")
+def index_lanes():
+    """Scratch for one intersection index per lane of a tile."""
+    return np.empty(TILE_PIXELS, np.int32)
+
+
 @numba.njit(cache=True)
 def tile_lanes(xs, ys, px0, py0, lane_x, lane_y):
     """Pixel coordinates of the ``TILE_PIXELS`` lanes (row major) of the tile at ``(px0, py0)``;
@@ -205,30 +238,26 @@ def raster_fwd(
     alias checks.
     """
     height, width = out_trans.shape
-    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-    n_tiles = tiles_x * ((height + TILE_SIZE - 1) // TILE_SIZE)
+    tiles_x, n_tiles = tile_grid(height, width)
     alpha_max, alpha_min, t_min = consts[K_ALPHA_MAX], consts[K_ALPHA_MIN], consts[K_T_MIN]
     sigma_max, fast_exp = consts[K_SIGMA_MAX], feats.itemsize == 4
     half, one, two, zero = consts[K_HALF], consts[K_ONE], consts[K_TWO], consts[K_ZERO]
     for chunk in numba.prange(n_chunks):
-        lane_x = np.empty(TILE_PIXELS, feats.dtype)
-        lane_y = np.empty(TILE_PIXELS, feats.dtype)
-        trans = np.empty(TILE_PIXELS, feats.dtype)
-        done = np.empty(TILE_PIXELS, np.int32)
-        last = np.empty(TILE_PIXELS, np.int32)
-        s0 = np.empty(TILE_PIXELS, feats.dtype)
-        acc = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
-        ref = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
-        s1 = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
-        s2 = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
-        alphas = np.empty(TILE_PIXELS, feats.dtype)  # σ, then e^-σ, then the masked α
-        weights = np.empty(TILE_PIXELS, feats.dtype)  # α T, 0 where not blended
-        moments = np.empty(TILE_PIXELS, feats.dtype)  # v T², 0 where not blended
+        lane_x = lanes_like(feats)
+        lane_y = lanes_like(feats)
+        trans = lanes_like(feats)
+        done = index_lanes()
+        last = index_lanes()
+        s0 = lanes_like(feats)
+        acc = feature_lanes_like(feats)
+        ref = feature_lanes_like(feats)
+        s1 = feature_lanes_like(feats)
+        s2 = feature_lanes_like(feats)
+        alphas = lanes_like(feats)  # σ, then e^-σ, then the masked α
+        weights = lanes_like(feats)  # α T, 0 where not blended
+        moments = lanes_like(feats)  # v T², 0 where not blended
         for tile in range(chunk, n_tiles, n_chunks):
-            px0 = (tile % tiles_x) * TILE_SIZE
-            py0 = (tile // tiles_x) * TILE_SIZE
-            px1 = min(px0 + TILE_SIZE, width)
-            py1 = min(py0 + TILE_SIZE, height)
+            px0, py0, px1, py1 = tile_box(tile, tiles_x, height, width)
             tile_lanes(xs, ys, px0, py0, lane_x, lane_y)
             trans[:] = one
             done[:] = 0
@@ -339,8 +368,7 @@ def raster_bwd(
     fixed order).
     """
     height, width = out_trans.shape
-    tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-    n_tiles = tiles_x * ((height + TILE_SIZE - 1) // TILE_SIZE)
+    tiles_x, n_tiles = tile_grid(height, width)
     alpha_max, alpha_min = consts[K_ALPHA_MAX], consts[K_ALPHA_MIN]
     sigma_max, fast_exp = consts[K_SIGMA_MAX], feats.itemsize == 4
     half, one, two, zero = consts[K_HALF], consts[K_ONE], consts[K_TWO], consts[K_ZERO]
@@ -349,33 +377,30 @@ def raster_bwd(
     # with the authors' gradient skips it (r_sum then stays 0)
     need_q = want_appearance or full_grad
     for chunk in numba.prange(n_chunks):
-        lane_x = np.empty(TILE_PIXELS, feats.dtype)
-        lane_y = np.empty(TILE_PIXELS, feats.dtype)
-        trans = np.empty(TILE_PIXELS, feats.dtype)  # T_{i+1}, then T_i while walking back
-        last = np.empty(TILE_PIXELS, np.int32)
-        g_final = np.empty(TILE_PIXELS, feats.dtype)  # ∂L/∂A · T_final
-        g_behind = np.empty(TILE_PIXELS, feats.dtype)  # Σ_{j behind} w_j ⟨∂L/∂F, f_j⟩
-        r_sum = np.empty(TILE_PIXELS, feats.dtype)  # Σ_{j behind} q_j u_j
-        fin = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
-        g_fin = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
-        g_v = np.empty((N_FEAT, TILE_PIXELS), feats.dtype)
-        gauss = np.empty(TILE_PIXELS, feats.dtype)  # σ, then e^-σ
-        alphas = np.empty(TILE_PIXELS, feats.dtype)  # masked α
-        inverse = np.empty(TILE_PIXELS, feats.dtype)  # 1 / (1 − α)
-        weights = np.empty(TILE_PIXELS, feats.dtype)  # w = α T_i
-        moments = np.empty(TILE_PIXELS, feats.dtype)  # u = v T_i², 0 where not blended
-        squares = np.empty(TILE_PIXELS, feats.dtype)  # T_i², 0 where not blended
-        q_var = np.empty(TILE_PIXELS, feats.dtype)  # q = Σ_ch ∂L/∂V (f − F)²
-        g_dot_f = np.empty(TILE_PIXELS, feats.dtype)  # ⟨∂L/∂F, f_i⟩
-        d_alphas = np.empty(TILE_PIXELS, feats.dtype)  # ∂L/∂α_i, 0 where not blended
-        d_sigmas = np.empty(TILE_PIXELS, feats.dtype)  # ∂L/∂σ_i
-        terms = np.empty(TILE_PIXELS, feats.dtype)  # one slot entry per lane, then summed
+        lane_x = lanes_like(feats)
+        lane_y = lanes_like(feats)
+        trans = lanes_like(feats)  # T_{i+1}, then T_i while walking back
+        last = index_lanes()
+        g_final = lanes_like(feats)  # ∂L/∂A · T_final
+        g_behind = lanes_like(feats)  # Σ_{j behind} w_j ⟨∂L/∂F, f_j⟩
+        r_sum = lanes_like(feats)  # Σ_{j behind} q_j u_j
+        fin = feature_lanes_like(feats)
+        g_fin = feature_lanes_like(feats)
+        g_v = feature_lanes_like(feats)
+        gauss = lanes_like(feats)  # σ, then e^-σ
+        alphas = lanes_like(feats)  # masked α
+        inverse = lanes_like(feats)  # 1 / (1 − α)
+        weights = lanes_like(feats)  # w = α T_i
+        moments = lanes_like(feats)  # u = v T_i², 0 where not blended
+        squares = lanes_like(feats)  # T_i², 0 where not blended
+        q_var = lanes_like(feats)  # q = Σ_ch ∂L/∂V (f − F)²
+        g_dot_f = lanes_like(feats)  # ⟨∂L/∂F, f_i⟩
+        d_alphas = lanes_like(feats)  # ∂L/∂α_i, 0 where not blended
+        d_sigmas = lanes_like(feats)  # ∂L/∂σ_i
+        terms = lanes_like(feats)  # one slot entry per lane, then summed
         partial = np.empty(TILE_SIZE, feats.dtype)
         for tile in range(chunk, n_tiles, n_chunks):
-            px0 = (tile % tiles_x) * TILE_SIZE
-            py0 = (tile // tiles_x) * TILE_SIZE
-            px1 = min(px0 + TILE_SIZE, width)
-            py1 = min(py0 + TILE_SIZE, height)
+            px0, py0, px1, py1 = tile_box(tile, tiles_x, height, width)
             tile_lanes(xs, ys, px0, py0, lane_x, lane_y)
             trans[:] = one
             last[:] = -1  # lanes past the image border never match

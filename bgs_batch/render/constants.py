@@ -1,4 +1,4 @@
-"""Named constants of the rendering model (3DGS conventions, DESIGN.md §4).
+"""Named constants of the rendering model (3DGS conventions, docs/method.md §1).
 
 Pixel convention: pixel ``(x, y)`` is sampled at image coordinates ``(x, y)``, the OpenCV
 convention for the intrinsics ``u = fx·X/Z + cx``, ``v = fy·Y/Z + cy``.

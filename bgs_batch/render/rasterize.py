@@ -2,7 +2,7 @@
 
 One operator, :func:`rasterize`, with two backends: ``"numba"`` (default; tile based,
 deterministic, float32 or float64) and ``"torch"`` (the dense float64 oracle of
-:mod:`.reference`). Both implement DESIGN.md §4 / paper Eq. 3, 12, 13.
+:mod:`.reference`). Both implement docs/method.md §1-2 (paper Eq. 3, 12, 13).
 """
 
 import threading
@@ -75,7 +75,7 @@ def rasterize(
         depths: [M] camera-space depths ``d_i`` (sort key and depth feature).
         opacities: [M] activated opacities ``o_i``.
         colors: [M,3] RGB colours ``c_i``.
-        variances: [M] opacity variances ``v_i = softplus(r_i)`` (DESIGN.md §4).
+        variances: [M] opacity variances ``v_i = softplus(r_i)`` (docs/method.md §1).
         full_grad: differentiate ``T_i²`` in the variances too; ``False`` is the authors'
             gradient (``T_i²`` constant, ``C`` and ``D`` still differentiated).
         backend: ``"numba"`` or ``"torch"``.
@@ -124,8 +124,7 @@ class _RasterizeNumba(torch.autograd.Function):
         if not (np.all(a > 0) and np.all(a * c > b * b)):
             raise ValueError("conics must be positive definite (a > 0, a·c > b²)")
         feats = to_numpy(torch.cat([colors.detach(), depths.detach().unsqueeze(-1)], -1))
-        tiles_x = (width + TILE_SIZE - 1) // TILE_SIZE
-        n_tiles = tiles_x * ((height + TILE_SIZE - 1) // TILE_SIZE)
+        tiles_x, n_tiles = nr.tile_grid(height, width)
         rects = nr.compute_rects(mean_np, conic_np, opac_np, width, height)
         order = np.argsort(to_numpy(depths), kind="stable")
         tile_start, isect_gauss, isect_slot, gauss_start = nr.bin_tiles(

@@ -1,7 +1,7 @@
 """Dense pure-PyTorch reference renderer: the test oracle (tiny scenes, float64).
 
 Every pixel is composited against every Gaussian with plain autograd, implementing exactly the
-semantics of DESIGN.md §4 that the fast backend must reproduce: ``α_i = min(0.99, o_i·G_i)``,
+semantics of docs/method.md §1-2 that the fast backend must reproduce: ``α_i = min(0.99, o_i·G_i)``,
 skip ``α_i < 1/255``, stop before ``T < 1e-4``, and the opacity-induced variances of paper
 Eq. 3, 12 and 13.
 """

@@ -12,7 +12,7 @@ from .rasterize import DEFAULT_BACKEND, RasterOutput, rasterize
 
 @dataclass
 class Gaussians:
-    """Raw (unactivated) parameters of N Gaussians (DESIGN.md §4).
+    """Raw (unactivated) parameters of N Gaussians (docs/method.md §1).
 
     Colours are stored as plain RGB (SH degree 0 without the SH-DC constant); opacity and the
     opacity uncertainty are activated as ``o_i = sigmoid(opacity_logits)`` and

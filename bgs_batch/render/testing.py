@@ -17,7 +17,7 @@ ROOM_OPACITY_RANGE = (0.3, 1.0)
 FLAT_SCALE = 1e-3
 """Standard deviation along the surface normal (metres)."""
 INITIAL_UNCERTAINTY_LOGIT = -7.0
-"""Raw opacity-uncertainty ``r_i`` of new Gaussians (DESIGN.md §4)."""
+"""Raw opacity-uncertainty ``r_i`` of new Gaussians (docs/method.md §1)."""
 ROOM_CAMERA_Z = -2.0
 """The bench camera stands at (0, 0, ROOM_CAMERA_Z) looking along +z: about 27% in view."""
 VGA = Camera(fx=525.0, fy=525.0, cx=319.5, cy=239.5, width=640, height=480)
@@ -100,7 +100,7 @@ def _box_faces(gen: torch.Generator, dtype) -> list[tuple[int, float, torch.Tens
 
 
 def room_gaussians(n: int, *, seed: int, dtype: torch.dtype = torch.float32) -> Gaussians:
-    """The bench scene of research/rasterizer.md §3.4: Gaussians lying flat on the walls of a
+    """The bench scene of docs/method.md §10: Gaussians lying flat on the walls of a
     6×3×6 m room (80%) and on six boxes (20%); view it with :func:`room_viewmat`."""
     gen = torch.Generator().manual_seed(seed)
     faces = _box_faces(gen, dtype)
