@@ -23,7 +23,7 @@ class ConfigError(BgsError):
 
 @dataclass
 class UncertaintyConfig:
-    """Predictive variance (DESIGN.md §4; paper §III-A, §III-D)."""
+    """Predictive variance (paper §III-A, §III-D; docs/method.md §2-4)."""
 
     initial_logit: float = -7.0  # r_i; v_i = softplus(r_i) ≈ 9.1e-4
     map_floor: float = 1e-3  # added to the rendered V_C, V_D
@@ -46,7 +46,7 @@ class UncertaintyConfig:
 
 @dataclass
 class TrackingConfig:
-    """Uncertainty-normalised L1 tracking (paper Eq. 15-17; DESIGN.md §4)."""
+    """Uncertainty-normalised L1 tracking (paper Eq. 15-17; docs/method.md §6)."""
 
     iterations: int = 200
     rot_lr: float = 0.002
@@ -84,7 +84,7 @@ class TrackingConfig:
 
 @dataclass
 class MappingConfig:
-    """Keyframe mapping: L_3DGS + γ(NLL_C + NLL_D) (paper Eq. 12-14; LoopSplat §3)."""
+    """Keyframe mapping: L_3DGS + γ(NLL_C + NLL_D) (paper Eq. 12-14; docs/method.md §5)."""
 
     iterations: int = 100
     new_submap_iterations: int = 100
@@ -106,7 +106,7 @@ class MappingConfig:
 
 @dataclass
 class SeedingConfig:
-    """Where new Gaussians come from (LoopSplat §3)."""
+    """Where new Gaussians come from (LoopSplat's rules, docs/method.md §5)."""
 
     new_submap_points: int = 100_000  # uniform random pixels of a submap's first frame
     new_submap_gradient_points: int = 50_000  # sampled ∝ colour gradient magnitude
@@ -120,7 +120,7 @@ class SeedingConfig:
 
 @dataclass
 class SubmapConfig:
-    """When a new submap starts (LoopSplat §4)."""
+    """When a new submap starts (LoopSplat's rule, docs/method.md §8)."""
 
     mode: Literal["motion", "interval"] = "motion"
     max_translation: float = 0.5  # m from the submap's first frame
@@ -144,7 +144,7 @@ class KeyframeConfig:
 # --- loop closure -----------------------------------------------------------------------------
 @dataclass
 class LoopClosureConfig:
-    """Loop closure over submaps (LoopSplat §5; `bgs_batch.slam.loop_closure`).
+    """Loop closure over submaps (docs/method.md §8; `bgs_batch.slam.loop_closure`).
 
     At every submap switch: ORB bag-of-words place recognition over keyframes (the vocabulary is
     learnt online, no weights are downloaded), geometric verification (3-D/3-D RANSAC on depth),

@@ -1,4 +1,4 @@
-"""Trajectory metrics: absolute trajectory error after rigid alignment (DESIGN.md §8)."""
+"""Trajectory metrics: absolute trajectory error after rigid alignment (docs/outputs.md)."""
 
 from __future__ import annotations
 

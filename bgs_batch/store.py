@@ -1,4 +1,4 @@
-"""The HDF5 frame store (schema version 1, ``DESIGN.md`` §3): one file per RGB-D sequence.
+"""The HDF5 frame store (schema version 1, docs/store-format.md): one file per RGB-D sequence.
 
 Layout::
 
@@ -147,7 +147,7 @@ def encode_frame(
 
 
 def temp_path(path: Path) -> Path:
-    """Where a store is built before the final rename (``DESIGN.md`` §3: ``NAME.h5.tmp``)."""
+    """Where a store is built before the final rename (docs/store-format.md: ``NAME.h5.tmp``)."""
     return path.with_name(path.name + TMP_SUFFIX)
 
 

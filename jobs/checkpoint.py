@@ -1,4 +1,4 @@
-"""Checkpoints of a running job: atomic, checksummed, the newest two kept (DESIGN.md §6).
+"""Checkpoints of a running job: atomic, checksummed, the newest two kept (docs/usage.md).
 
 A checkpoint is one file ``checkpoints/<frames done>-<sha256 prefix>.pt`` written with
 `bgs_batch.atomic`, so a crash never leaves a half-written file under a final name, and a file

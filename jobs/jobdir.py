@@ -1,4 +1,4 @@
-"""A job directory's identity and ownership: ``job.json`` and the lock file (DESIGN.md §6).
+"""A job directory's identity and ownership: ``job.json`` and the lock file (docs/usage.md).
 
 ``job.json`` records what the job computes (input store with its checksum, resolved config,
 package version); running again on the same directory with other inputs or settings is refused

@@ -1,6 +1,6 @@
 """Area under the sparsification error (AUSE-MAE) of predicted uncertainty vs true error.
 
-Conventions (DESIGN.md §8; research/uncertainty.md §2):
+Conventions (docs/outputs.md, metrics.json conventions):
 - elements: the pixels of one frame with valid measured depth (finite, > 0);
 - colour: per-pixel error = |Ĉ − C| averaged over channels, uncertainty = the channel mean of Σ_C;
   depth: error = |D̂ − D| (m), uncertainty = Σ_D;

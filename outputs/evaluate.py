@@ -1,4 +1,4 @@
-"""`bgs eval`: the metrics of a finished job, with every convention stated (DESIGN.md §8).
+"""`bgs eval`: the metrics of a finished job, with every convention stated (docs/outputs.md).
 
 `FrameEvaluator` collects per-frame rendering and uncertainty metrics from `FrameUncertainty`
 items (the same renders as the uncertainty images, so nothing is rendered twice);

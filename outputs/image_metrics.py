@@ -1,6 +1,6 @@
 """Rendering metrics on one frame; images are channels-last float tensors in [0, 1].
 
-Conventions (DESIGN.md §8, as LoopSplat/BayesianGS-SLAM report them):
+Conventions (docs/outputs.md, as LoopSplat/BayesianGS-SLAM report them):
 - PSNR: 10·log10(1 / MSE) over the whole [H,W,3] image, data range 1; identical images give inf.
 - SSIM: the 3DGS Gaussian-window SSIM (11×11, σ 1.5, zero padding) of `bgs_batch.slam.losses.ssim`.
 - MS-SSIM: Wang et al. 2003 as in pytorch-msssim (valid 11×11 Gaussian windows, σ 1.5, five

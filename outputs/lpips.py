@@ -1,6 +1,6 @@
 """LPIPS (Zhang et al., CVPR 2018, v0.1) in plain PyTorch, from user-supplied weights only.
 
-Nothing is downloaded (research/ecosystem.md §6.3): the user passes state-dict files holding the
+Nothing is downloaded (docs/outputs.md): the user passes state-dict files holding the
 backbone and the linear heads, in any of these key layouts (several files are merged):
 
 - a whole ``lpips.LPIPS(net=...)`` model: ``net.sliceK.I.weight|bias`` and ``linK.model.1.weight``

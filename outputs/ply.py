@@ -1,6 +1,6 @@
 """Gaussian maps as PLY files in the INRIA 3DGS layout, plus merging submaps into one map.
 
-Layout (DESIGN.md §7; research/ecosystem.md §1): one ``vertex`` element, ``binary_little_endian
+Layout (docs/outputs.md): one ``vertex`` element, ``binary_little_endian
 1.0``, every property ``float``, in the order ``x y z nx ny nz f_dc_0..2 opacity scale_0..2
 rot_0..3 uncertainty``. Encodings: normals zero; SH DC ``f_dc = (rgb − 0.5) / C0`` (degree 0,
 no ``f_rest``); opacity as a logit; scales as logs; rotation w-first, unnormalised as optimised;

@@ -1,4 +1,4 @@
-"""Per-frame predictive uncertainty re-rendered from a finished job (DESIGN.md §4, §7).
+"""Per-frame predictive uncertainty re-rendered from a finished job (docs/outputs.md).
 
 For a frame, `UncertaintyRenderer.frame` renders the frame's submap at the frame's final
 estimated pose (``trajectory.txt``: after any loop-closure correction, as are the submap files'
@@ -93,7 +93,7 @@ class FrameUncertainty:
 
         predictive: Σ_D; map: its map term only; sensor: σ²_sensor,D only; varsplat: the map
         term of the colour variance reused for depth, as VarSplat's depth NLL does (VarSplat
-        has no sensor term; research/uncertainty.md §1.1).
+        has no sensor term; docs/method.md §9).
         """
         return {"predictive": self.var_depth, "map": self.var_depth_map,
                 "sensor": self.var_depth_sensor, "varsplat": self.var_color_map}  # fmt: skip

@@ -1,5 +1,5 @@
 """The numba backend against the dense float64 oracle: forward, every gradient, edge cases,
-determinism and dtype discipline (DESIGN.md §4–5)."""
+determinism and dtype discipline (docs/method.md §1-2, §10)."""
 
 import re
 

@@ -1,4 +1,4 @@
-"""Closed-form checks of the compositing rules and variances (DESIGN.md §4, paper Eq. 3, 12,
+"""Closed-form checks of the compositing rules and variances (docs/method.md §1-2, paper Eq. 3, 12,
 13), of the projection and of the se(3) pose map, on both backends."""
 
 import math

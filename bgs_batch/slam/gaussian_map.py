@@ -2,7 +2,7 @@
 
 Parameters are raw (unactivated) float32 leaf tensors, as `bgs_batch.render.Gaussians` expects:
 means, log-scales, w-first quaternions, opacity logits, RGB colours and the opacity-uncertainty
-logits r_i (v_i = softplus(r_i); DESIGN.md §4).
+logits r_i (v_i = softplus(r_i); docs/method.md §1).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ class GaussianMap:
         """Append Gaussians at `means` with `colors`; returns how many were added.
 
         Scale: RMS distance to the 3 nearest Gaussians among old and new (3DGS's distCUDA2),
-        isotropic; rotation identity; opacity and uncertainty as given (DESIGN.md §4).
+        isotropic; rotation identity; opacity and uncertainty as given (docs/method.md §1, §5).
         """
         if len(means) == 0:
             return 0

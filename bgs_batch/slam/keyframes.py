@@ -1,4 +1,4 @@
-"""Predictive-surprise keyframe selection (paper §III-C, §III-D; authors' rule, DESIGN.md §4).
+"""Predictive-surprise keyframe selection (paper §III-C, §III-D; authors' rule, docs/method.md §7).
 
 A frame is a keyframe when its colour or depth surprise exceeds K, when it is the first frame of
 a submap, or when N frames have passed since the last keyframe (the periodic fallback). In mode

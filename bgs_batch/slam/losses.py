@@ -1,6 +1,6 @@
 """Losses and scores of the method; images are channels-last tensors ([H,W,3] colour, [H,W,1]).
 
-- `predictive_variance`: Σ = σ²_sensor + V_render with the floors of DESIGN.md §4 (Eq. 10, 11)
+- `predictive_variance`: Σ = σ²_sensor + V_render with the floors of docs/method.md §2 (Eq. 10, 11)
 - `mapping_loss`: L_3DGS + γ(NLL_C + NLL_D) (Eq. 12-14; LoopSplat's L_3DGS)
 - `tracking_loss`: the uncertainty-normalised L1 surrogate (Eq. 15-17)
 - `surprise_scores`: the Gaussian predictive NLL used for keyframe selection (Eq. 9)

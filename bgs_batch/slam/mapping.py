@@ -1,4 +1,4 @@
-"""Keyframe mapping of the active submap (paper §III-A, Eq. 12-14; LoopSplat §3).
+"""Keyframe mapping of the active submap (paper §III-A, Eq. 12-14; docs/method.md §5).
 
 A mapping call seeds new Gaussians from the keyframe, then optimises the submap and the
 sensor-noise network jointly: each iteration renders one keyframe of the submap (the current

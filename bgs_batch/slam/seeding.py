@@ -1,6 +1,6 @@
 """Where new Gaussians come from: pixels chosen on a keyframe, back-projected with its depth.
 
-LoopSplat's rules (research/loopsplat.md §3): a submap's first frame is seeded at uniformly
+LoopSplat's rules (docs/method.md §5): a submap's first frame is seeded at uniformly
 random pixels, at pixels drawn in proportion to the colour gradient and at all Canny edge pixels;
 later keyframes only where the map is thin (alpha below a threshold) or lies in front of the
 measured surface by far more than usual. Candidates near an existing Gaussian are dropped.

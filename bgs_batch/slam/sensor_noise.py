@@ -1,10 +1,10 @@
-"""The sensor-noise network (paper §III-D; DESIGN.md §4): per-pixel RGB-D noise variances.
+"""The sensor-noise network (paper §III-D; docs/method.md §3): per-pixel RGB-D noise variances.
 
 A small fully convolutional net on the frame itself, input ``[depth m, R, G, B]``: 4 conv 3×3
 layers and 4 per-pixel fully connected (1×1 conv) layers, 32 channels, ReLU, two output maps
 (colour variance shared by R, G, B; depth variance) through softplus plus a floor. Trained with
 the map during mapping only; in tracking it is evaluated once per frame and detached.
-(The authors' code has 3 rather than 4 per-pixel layers; DESIGN.md fixes 4.)
+(The authors' code has 3 rather than 4 per-pixel layers; the paper describes 4.)
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Camera tracking against the active submap (paper §III-B, Eq. 15-17; DESIGN.md §4).
+"""Camera tracking against the active submap (paper §III-B, Eq. 15-17; docs/method.md §6).
 
 The pose is a left perturbation of the initial world-to-camera matrix, ``w2c = exp(ξ) · w2c₀``
 with ξ = (ρ, φ), or ``P exp(ξ) P⁻¹ · w2c₀`` with P the shift to a point on the optical axis at

@@ -1,4 +1,4 @@
-"""Loop closure over submaps (LoopSplat §5 with our uncertainty in the registration).
+"""Loop closure over submaps (LoopSplat's, with our uncertainty; docs/method.md §8).
 
 At every submap switch the finished submap is the *query*:
 
