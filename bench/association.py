@@ -17,6 +17,8 @@ import numpy as np
 from converters.association import associate
 from converters.tum import read_file_list
 
+from status_page import recorded
+
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum_rgbd"
 TOLERANCES = (0.02, 0.04, 0.08)
 
@@ -62,4 +64,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("association"):
+        main()

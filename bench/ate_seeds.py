@@ -26,6 +26,8 @@ from bgs_batch.config import ConfigError, load_config
 from converters.tum import TumOptions, convert_tum
 from jobs.run import RunSummary, run_job
 
+from status_page import recorded
+
 
 def run_seeds(store: Path, root: Path, name: str, overrides: list[str], seeds: int,
               frames: int) -> list[RunSummary]:  # fmt: skip
@@ -78,4 +80,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("ate_seeds"):
+        main()

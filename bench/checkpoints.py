@@ -1,4 +1,4 @@
-"""Cost of checkpointed, resumable jobs (issue P4): checkpoint time and size, cadence overhead,
+"""Cost of checkpointed, resumable jobs: checkpoint time and size, cadence overhead,
 resume latency.
 
 Usage: .venv/bin/python bench/checkpoints.py [--tum DIR] [--frames 30]
@@ -44,6 +44,8 @@ from converters.synthetic import SynthConfig, synthesize
 from converters.tum import TumOptions, plan_tum
 from jobs.checkpoint import CHECKPOINT_DIR
 from jobs.run import LOG_FILE, RunSummary, run_job
+
+from status_page import recorded
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEFAULT_TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_rpy"
@@ -309,4 +311,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("checkpoints"):
+        main()

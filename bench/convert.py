@@ -4,10 +4,10 @@ Usage: .venv/bin/python bench/convert.py [--tum DIR] [--repeats 3] [--only tum|s
 
 Runs on the real TUM fr1/rpy excerpt in ../shared/data (or any TUM folder); all numbers come
 from one run, so the ratios hold even on a noisy machine. Prints a table and one summary line.
-Targets (issue P1): conversion >= 80 % of the single-thread OpenCV decode rate of the same
+Targets: conversion >= 80 % of the single-thread OpenCV decode rate of the same
 PNGs, peak RSS growth 60 -> 240 frames < 50 MB, read-back >= 150 frames/s.
 
-Issue P6 adds one row pair per new format, made from the same real frames: ScanNet (.sens and
+One row pair per further format, made from the same real frames: ScanNet (.sens and
 exported folder: colour upscaled to 1296x968 JPEG, depth in mm) and bags (ROS1 with lz4 chunks,
 ROS2 sqlite3, ROS2 MCAP: JPEG colour and compressedDepth PNG, as robots record). Each pair is the
 single-thread decode-only rate of those frames (reading the container included) and the full
@@ -41,6 +41,8 @@ from converters.scannet import ScanNetOptions, plan_scannet
 from converters.sens import write_sens
 from converters.tum import TUM_CAMERAS, TumOptions, plan_tum
 
+from status_page import recorded
+
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEFAULT_TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_rpy"
 TARGET_CONVERT_RATIO = 0.8
@@ -61,8 +63,8 @@ print(json.dumps({"seconds": time.perf_counter() - start, "frames": report.frame
                   "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
-# Runs plan + conversion of a ScanNet scene or a bag in a fresh interpreter (issue P6).
-_CHILD_P6 = """
+# Runs plan + conversion of a ScanNet scene or a bag in a fresh interpreter.
+_CHILD_FORMAT = """
 import json, sys, time
 from pathlib import Path
 from converters.pipeline import write_store
@@ -87,7 +89,7 @@ BAG_STORAGES = {"ROS1 .bag (lz4)": ("ros1", "lz4"), "ROS2 .db3": ("sqlite3", Non
                 "ROS2 .mcap": ("mcap", None)}  # fmt: skip
 BAG_CODECS = ("jpg", "16UC1 compressedDepth")
 MM_PER_TUM_UNIT = 1000 / 5000
-ONLY_CHOICES = ("tum", "scannet", "bags")  # --only: the TUM PNG rows, or one group of P6 rows
+ONLY_CHOICES = ("tum", "scannet", "bags")  # --only: the TUM PNG rows, or one group of format rows
 
 
 def decode_rate(pairs: list[tuple[Path, Path]], threads: int) -> float:
@@ -137,7 +139,7 @@ def load_tum_frames(plan) -> list[tuple[int, int, np.ndarray, np.ndarray]]:  # n
     return frames
 
 
-def make_p6_inputs(frames: list, root: Path, only: str | None = None) -> dict[str, Path]:
+def make_format_inputs(frames: list, root: Path, only: str | None = None) -> dict[str, Path]:
     """The frames as a ScanNet .sens and export folder and as bags, named by format (only the
     ScanNet or the bag ones when `only` says so)."""
     root.mkdir(parents=True, exist_ok=True)
@@ -182,8 +184,8 @@ def make_bags(frames: list, root: Path) -> dict[str, Path]:
     return inputs
 
 
-def p6_decode(name: str, source: Path) -> tuple[float, float]:
-    """Frames/s and CPU ms/frame of reading and decoding every frame of a P6 input, one thread,
+def format_decode(name: str, source: Path) -> tuple[float, float]:
+    """Frames/s and CPU ms/frame of reading and decoding every frame of a format input, one thread,
     nothing else."""
     start, cpu = time.perf_counter(), time.process_time()
     if name.startswith("ScanNet"):
@@ -205,29 +207,29 @@ def p6_decode(name: str, source: Path) -> tuple[float, float]:
     return frames / seconds, 1000 * cpu / frames
 
 
-def p6_convert_in_child(name: str, source: Path, out: Path) -> dict:
+def format_convert_in_child(name: str, source: Path, out: Path) -> dict:
     kind = "scannet" if name.startswith("ScanNet") else "bag"
-    result = subprocess.run([sys.executable, "-c", _CHILD_P6, kind, source, out],
+    result = subprocess.run([sys.executable, "-c", _CHILD_FORMAT, kind, source, out],
                             check=True, capture_output=True, text=True)  # fmt: skip
     return json.loads(result.stdout)
 
 
-def p6_rows(
+def format_rows(
     frames: list, short: int, repeats: int, tmp: Path, only: str | None = None
 ) -> tuple[list, list[str], bool]:
-    """Row pairs, summary items and whether every P6 target was met."""
-    long_inputs = make_p6_inputs(frames, tmp / "long", only)
-    short_inputs = make_p6_inputs(frames[:short], tmp / "short", only)
+    """Row pairs, summary items and whether every format target was met."""
+    long_inputs = make_format_inputs(frames, tmp / "long", only)
+    short_inputs = make_format_inputs(frames[:short], tmp / "short", only)
     rows, summary, ok = [], [], True
     for name, source in long_inputs.items():
         decodes, runs = [], []
         for _ in range(repeats):  # alternating, so both sides see the same machine load
-            decodes.append(p6_decode(name, source))
-            runs.append(p6_convert_in_child(name, source, tmp / "p6.h5"))
+            decodes.append(format_decode(name, source))
+            runs.append(format_convert_in_child(name, source, tmp / "format.h5"))
         decode, decode_cpu = max(decodes)
         convert = max(r["frames"] / r["seconds"] for r in runs)
         convert_cpu = min(1000 * r["cpu_s"] / r["frames"] for r in runs)
-        small = p6_convert_in_child(name, short_inputs[name], tmp / "p6_short.h5")
+        small = format_convert_in_child(name, short_inputs[name], tmp / "format_short.h5")
         growth = runs[0]["peak_rss_mb"] - small["peak_rss_mb"]
         ratio = convert / decode
         ok &= ratio >= TARGET_CONVERT_RATIO and growth < TARGET_RSS_GROWTH_MB
@@ -245,7 +247,7 @@ def p6_rows(
 
 
 def tum_rows(tum: Path, plan, repeats: int, tmp: Path) -> tuple[list, str, bool]:  # noqa: ANN001
-    """TUM PNG rows (P1), their summary and whether every P1 target was met."""
+    """TUM PNG rows, their summary and whether every target was met."""
     n = len(plan.frames)
     pairs = [(tum / f.name.split(" + ")[0], tum / f.name.split(" + ")[1])
              for f in plan.frames]  # fmt: skip
@@ -303,10 +305,12 @@ def main() -> None:
             summary.append(tum_summary)
         if args.only != "tum":
             frames = load_tum_frames(plan)
-            p6, p6_summary, p6_ok = p6_rows(frames, min(60, n), args.repeats, Path(tmp), args.only)
-            rows += p6
-            summary.append(f"P6 {', '.join(p6_summary)}")
-            ok &= p6_ok
+            extra, format_summary, format_ok = format_rows(
+                frames, min(60, n), args.repeats, Path(tmp), args.only
+            )
+            rows += extra
+            summary.append(f"formats {', '.join(format_summary)}")
+            ok &= format_ok
 
     print(f"bench/convert.py: {args.tum.name}, {n} frames, best of {args.repeats}")
     width = max(len(r[0]) for r in rows)
@@ -316,4 +320,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("convert"):
+        main()

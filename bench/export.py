@@ -1,4 +1,4 @@
-"""Export time of a finished run against the run's own time (issue P5).
+"""Export time of a finished run against the run's own time.
 
 Usage: .venv/bin/python bench/export.py [--frames 40] [--size 320x240] [--tum [DIR]]
 
@@ -27,6 +27,8 @@ from converters.synthetic import SynthConfig, synthesize
 from converters.tum import TumOptions, plan_tum
 from jobs.run import run_job
 from outputs.export import RUN_DEFAULTS, ExportOptions, export_job
+
+from status_page import recorded
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEFAULT_TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_rpy"
@@ -116,4 +118,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("export"):
+        main()

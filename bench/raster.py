@@ -1,4 +1,4 @@
-"""Benchmark of the CPU rasterizer (issue P2) on the room scene of research/rasterizer.md §3.4.
+"""Benchmark of the CPU rasterizer on the room scene of docs/method.md §10.
 
 Run ``.venv/bin/python bench/raster.py`` (float32, 2 threads). Every case renders colour, depth,
 alpha and both variances and back-propagates random upstream gradients; the tracking case
@@ -13,7 +13,7 @@ the 2 cores inflate every number.
 
 ``cpu ms`` is the process CPU time of forward + backward summed over threads: less sensitive
 to other processes than wall time (ideal 2-thread wall time ≈ cpu / 2). The floor column
-divides by the compute-bound floor of research/rasterizer.md §4: necessary
+divides by the compute-bound floor of docs/method.md §10: necessary
 (pixel, Gaussian) evaluations × 220 flop at 141 GFLOP/s.
 """
 
@@ -34,6 +34,8 @@ from bgs_batch.render import _numba_raster as nr
 from bgs_batch.render import project, rasterize, render, se3_exp
 from bgs_batch.render.render import Gaussians
 from bgs_batch.render.testing import VGA, room_gaussians, room_viewmat
+
+from status_page import recorded
 
 THREADS = 2
 REPEATS = 5
@@ -204,4 +206,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("raster"):
+        main()

@@ -11,7 +11,7 @@ preset (surprise keyframes); the keyframe check on the first M frames, a `cpu` r
 surprise keyframes against one mapping every frame (mapping every frame is ~3x slower; both
 runs see the same M frames and differ only in `keyframes.mode`, so loop closures that the full
 run finds later, and that move its early submaps, do not enter the ratio); bgs `paper` preset
-on the first P frames. Targets (issue P3): ATE ≤ 2.5 cm, ≥ 0.5 fps, keyframes ≤ 35 % with ATE
+on the first P frames. Targets: ATE ≤ 2.5 cm, ≥ 0.5 fps, keyframes ≤ 35 % with ATE
 ≤ 1.15× every-frame, peak RSS ≤ 4 GiB. Prints a table and one SUMMARY line.
 """
 
@@ -34,6 +34,8 @@ from bgs_batch.store import FrameStore
 from converters.tum import TumOptions, convert_tum
 from jobs.run import run_job
 from outputs.export import ExportOptions, export_job
+
+from status_page import recorded
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEFAULT_TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_rpy"
@@ -177,4 +179,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    with recorded("slam_tum"):
+        main()
