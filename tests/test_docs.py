@@ -52,3 +52,11 @@ def test_the_code_cites_nothing_outside_the_repository():
 
 def test_the_readme_stays_short():
     assert len((ROOT / "README.md").read_text().splitlines()) <= README_MAX_LINES
+
+
+def test_every_test_or_bench_file_that_code_and_pages_name_exists():
+    named = re.compile(r"\b((?:tests|bench)/[\w/]+\.py)\b")
+    missing = sorted({f"{path.relative_to(ROOT)}: {name}"
+                      for path in [*CODE, *PAGES] for name in named.findall(path.read_text())
+                      if not (ROOT / name).exists()})  # fmt: skip
+    assert missing == []

@@ -3,7 +3,7 @@
 Why not ``torch.optim.Adam``: constructing the first one imports ``torch._dynamo`` (1.5-2.6 s
 on the 2-core machine), which lands on every resumed job's latency. This class does
 the same arithmetic as torch's single-tensor CPU Adam (no weight decay, not maximising), op for
-op, so runs are bitwise identical to the ones made with it (tests/test_adam.py checks this).
+op, so runs are bitwise identical to the ones made with it (tests/slam/test_adam.py checks this).
 
 Interface as far as the package uses it: ``param_groups`` (dicts with ``params`` and per-group
 ``lr``, ``betas``, ``eps``, ``amsgrad``, plus any extra keys such as a name), ``state`` (keyed

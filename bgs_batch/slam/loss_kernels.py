@@ -7,7 +7,7 @@ backward one more. Sums are accumulated per image row in float64 and the rows ar
 order, so results never depend on the thread count.
 
 The formulas are those of :mod:`bgs_batch.slam.losses`, which documents them with the paper's
-equation numbers; ``tests/test_loss_kernels.py`` checks every value and gradient against
+equation numbers; ``tests/slam/test_loss_kernels.py`` checks every value and gradient against
 float64 PyTorch autograd of the plain formulas.
 """
 

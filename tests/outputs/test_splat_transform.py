@@ -21,7 +21,7 @@ from outputs.ply import PROPERTIES, SH_C0, Splats, write_ply
 PACKAGE = "@playcanvas/splat-transform@2.7.1"
 INSTALL_TIMEOUT_S = 600
 RUN_TIMEOUT_S = 120
-VENV = Path(__file__).resolve().parents[1] / ".venv"
+VENV = Path(__file__).resolve().parents[2] / ".venv"
 # SPZ v4 quantisation: positions 12 fractional bits, colour and alpha 8 bits
 SPZ_POSITION_TOL_M = 2.0**-12
 SPZ_UNIT_TOL = 1.5 / 255

@@ -13,7 +13,7 @@ from bgs_batch.cli import main
 from converters.pipeline import write_store
 from converters.tum import TumOptions, plan_tum
 from jobs.checkpoint import load_latest
-from jobs.signals import PREEMPTED_EXIT
+from jobs.preemption import PREEMPTED_EXIT
 
 
 def stores(root, names):
