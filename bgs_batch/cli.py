@@ -250,7 +250,7 @@ def inspect(store: Path, as_json: bool) -> None:
       bgs inspect fr1_rpy.h5
     """
     from bgs_batch.store import FrameStore
-    from bgs_batch.summary import print_summary, summarize
+    from bgs_batch.store_summary import print_summary, summarize
 
     with FrameStore(store) as opened:
         summary = summarize(opened)

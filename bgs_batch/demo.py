@@ -17,7 +17,7 @@ from rich.table import Table
 from bgs_batch.config import load_config
 from bgs_batch.progress import progress_bar
 from bgs_batch.store import FrameStore
-from bgs_batch.summary import StoreSummary, print_summary, summarize
+from bgs_batch.store_summary import StoreSummary, print_summary, summarize
 from converters.pipeline import write_store
 from converters.synthetic import SynthConfig, synthesize
 from converters.tum import TumOptions, plan_tum

@@ -37,7 +37,7 @@ from bgs_batch.slam import Slam
 from bgs_batch.store import FrameStore
 from jobs.checkpoint import load_latest, write_checkpoint
 from jobs.jobdir import check_or_write_record, job_lock, job_record, read_record
-from jobs.signals import Preempted, stop_requests
+from jobs.preemption import Preempted, stop_requests
 from outputs.trajectory import write_tum
 
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from bgs_batch.errors import BgsError, InputError
-from jobs.signals import PREEMPTED_EXIT
+from jobs.preemption import PREEMPTED_EXIT
 
 WARNING_SECONDS = 120
 # this task alone: one task's $SLURM_JOB_ID (22.05: the last task's) is the array id, and
