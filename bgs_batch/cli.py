@@ -269,24 +269,39 @@ def inspect(store: Path, as_json: bool) -> None:
 @click.option("--seed", default=0, show_default=True, type=int,
               help="Scene, path and noise seed; the same seed gives byte-identical files.")
 @click.option("--loop", is_flag=True, help="Make the camera path return to its start.")
+@click.option("--motion", type=click.Choice(["handheld", "walk", "shake"]), default="handheld",
+              show_default=True,
+              help="handheld: TUM handheld speeds; walk: faster, smoother, mostly turning "
+                   "left and right; shake: little travel, fast roll/pitch/yaw like TUM fr1/rpy.")
+@click.option("--blur", is_flag=True, help="Motion blur: colour exposed over half a frame.")
+@click.option("--rolling-shutter", is_flag=True,
+              help="Rows read out top to bottom over 0.9 of a frame (colour and depth).")
+@click.option("--holes", is_flag=True, help="Large depth holes (15 percent of the image).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT_DIR if it exists.")
 @click.pass_context
 def synth(ctx: click.Context, out_dir: Path, frames: int, size: tuple[int, int], seed: int,
-          loop: bool, overwrite: bool) -> None:  # fmt: skip
+          loop: bool, motion: str, blur: bool, rolling_shutter: bool, holes: bool,
+          overwrite: bool) -> None:  # fmt: skip
     """Render a synthetic RGB-D sequence of a textured room, in TUM layout.
 
     Open3D ray casting of a room with furniture, a smooth camera path, Kinect-like depth noise
-    and holes, exact ground truth (groundtruth.txt) and intrinsics (calibration.txt).
+    and holes, exact ground truth (groundtruth.txt) and intrinsics (calibration.txt). The
+    ground-truth pose of a frame is the camera's at its time stamp: the middle of the exposure
+    of the middle row.
 
     \b
-    Example:
+    Examples:
       bgs synth demo/room --frames 120 --size 640x480 --seed 3 --loop
+      bgs synth demo/shaky --motion shake --blur --rolling-shutter --holes
       bgs convert tum demo/room -o room.h5
     """
     from bgs_batch.progress import progress_bar
-    from converters.synthetic import SynthConfig, synthesize
+    from converters.synthetic import motion_config, synthesize
 
-    config = SynthConfig(frames=frames, width=size[0], height=size[1], seed=seed, loop=loop)
+    effects = tuple(name for name, on in (("blur", blur), ("rolling_shutter", rolling_shutter),
+                                          ("holes", holes)) if on)  # fmt: skip
+    config = motion_config(motion, effects, frames=frames, width=size[0], height=size[1],
+                           seed=seed, loop=loop)  # fmt: skip
     with progress_bar("rendering", frames, _show_progress(ctx)) as advance:
         synthesize(out_dir, config, overwrite=overwrite, progress=lambda _d, _t: advance(1))
     click.echo(f"wrote {frames} frames to {out_dir}")

@@ -21,6 +21,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -32,7 +33,7 @@ from bgs_batch.geometry import matrix_to_quat_xyzw
 from bgs_batch.signals import interruptible
 
 # Independent random streams derived from the seed (the second entry of the generator key).
-_SCENE_STREAM, _PATH_STREAM, _SENSOR_STREAM = 0, 1, 2
+_SCENE_STREAM, _PATH_STREAM, _SENSOR_STREAM, _SHAKE_STREAM = 0, 1, 2, 3
 # Plane coordinates of a hit on a face whose normal is along axis k: the other two axes.
 _PLANE_AXES = np.array([[1, 2], [0, 2], [0, 1]])
 _TUM_HEADER = "# {what}\n# file: 'synthetic (bgs synth, seed {seed})'\n# {columns}\n"
@@ -94,6 +95,19 @@ class SynthConfig:
     pitch: float = 0.3  # mean downward tilt
     swing_weights: tuple[float, float, float] = (1.0, 0.3, 0.1)  # yaw, pitch, roll amplitudes ...
     swing_limits: tuple[float, float, float] = (1.2, 0.25, 0.08)  # ... and their caps
+    # Shaking (0: none): on top of the path, each of yaw / pitch / roll gets two seeded
+    # sinusoids of shake_hz frequencies whose rates add up to about shake_rate (rad/s) times the
+    # axis weight, as a hand shaking the camera the way TUM fr1/rpy does (about 1 rad/s).
+    shake_rate: float = 0.0
+    shake_hz: tuple[float, float] = (0.4, 1.2)
+    shake_weights: tuple[float, float, float] = (1.0, 1.0, 0.6)
+
+    # Sensor timing, as fractions of the frame interval (0: an ideal global shutter with an
+    # instantaneous exposure). The ground-truth pose is the camera's at the frame's time stamp,
+    # which is the middle of the exposure of the middle row.
+    exposure: float = 0.0  # motion blur: colour averaged over this long an exposure ...
+    exposure_samples: int = 5  # ... sampled at this many instants
+    readout: float = 0.0  # rolling shutter: the rows are read out top to bottom over this long
 
     # Scene: room size (x, y, z), furniture per wall, clutter boxes on top of each piece.
     room_size: tuple[float, float, float] = (5.0, 4.0, 2.7)
@@ -152,6 +166,31 @@ class SynthConfig:
         return self.noise_a + self.noise_b * (np.asarray(z) - self.noise_z0) ** 2
 
 
+# Named camera motions and sensor effects (`bgs synth --motion`, `--blur`, ...), as the
+# SynthConfig fields they set.
+MOTIONS: dict[str, dict[str, Any]] = {
+    "handheld": {},  # TUM handheld speeds: 0.3 m/s, sweeping the room at about 0.4 rad/s
+    "walk": {"speed": 0.5, "turn_rate": 0.15, "swing_weights": (1.0, 0.1, 0.03)},
+    "shake": {"speed": 0.08, "turn_rate": 0.1, "shake_rate": 2.0},  # like TUM fr1/rpy
+}
+EFFECTS: dict[str, dict[str, Any]] = {
+    "blur": {"exposure": 0.5},  # half the frame interval, as indoor auto-exposure gives
+    "rolling_shutter": {"readout": 0.9},  # Kinect-class sensors read out over most of a frame
+    "holes": {"hole_fraction": 0.15, "hole_blobs": 6},  # large dropouts, as on dark or shiny
+}
+
+
+def motion_config(motion: str = "handheld", effects: tuple[str, ...] = (), **fields: Any
+                  ) -> SynthConfig:  # fmt: skip
+    """A SynthConfig with a named motion and sensor effects (`MOTIONS`, `EFFECTS`) applied."""
+    if motion not in MOTIONS:
+        raise InputError(f"unknown motion {motion!r}; choose one of {', '.join(MOTIONS)}")
+    settings = dict(MOTIONS[motion])
+    for effect in effects:
+        settings.update(EFFECTS[effect])
+    return SynthConfig(**{**settings, **fields})
+
+
 def validate(config: SynthConfig) -> None:
     """Raise InputError naming the first setting that cannot produce a sensible sequence."""
 
@@ -183,6 +222,13 @@ def validate(config: SynthConfig) -> None:
         f"hole_fraction must be in [0, 0.5), got {config.hole_fraction}",
     )
     require(config.speed >= 0 and config.turn_rate >= 0, "speed and turn_rate must be >= 0")
+    require(config.shake_rate >= 0, f"shake_rate must be >= 0, got {config.shake_rate}")
+    require(
+        0 <= config.exposure <= 1 and 0 <= config.readout <= 1,
+        f"exposure and readout must be in [0, 1] frame intervals, got {config.exposure} and "
+        f"{config.readout}",
+    )
+    require(config.exposure_samples >= 2, "exposure_samples must be at least 2")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -269,12 +315,19 @@ def _face_table(count: int, config: SynthConfig, rng: np.random.Generator) -> di
 
 
 def camera_poses(config: SynthConfig) -> np.ndarray:
-    """Camera-to-world poses (frames, 4, 4) of the seeded smooth path (OpenCV camera axes).
+    """Camera-to-world poses (frames, 4, 4) of the seeded smooth path (OpenCV camera axes)."""
+    return camera_path(config)(np.arange(config.frames, dtype=np.float64))
+
+
+def camera_path(config: SynthConfig) -> Callable[[np.ndarray], np.ndarray]:
+    """The seeded camera path as a function of time: frame positions (any shape, in frames, so
+    ``2.5`` is half-way between frames 2 and 3) to camera-to-world poses (..., 4, 4).
 
     Position and look angles are harmonics of a phase running round a closed curve. A loop goes
     round a whole number of laps (more when one lap within path_radius is too short for the
     speed), so the last pose is the first; an open path goes half a lap, where the dominant first
-    harmonic ends far from the start (long open paths therefore move more slowly).
+    harmonic ends far from the start (long open paths therefore move more slowly). Shaking
+    (`SynthConfig.shake_rate`) adds faster rotations on top.
     """
     rng = np.random.default_rng((config.seed, _PATH_STREAM))
     duration = (config.frames - 1) / config.fps
@@ -288,7 +341,7 @@ def camera_poses(config: SynthConfig) -> np.ndarray:
     coeffs[0, :, 0], coeffs[1, :, 0] = major, minor
 
     def curve(phi: np.ndarray) -> np.ndarray:
-        angles = phi[:, None] * order
+        angles = phi[..., None] * order
         return np.cos(angles) @ coeffs[0].T + np.sin(angles) @ coeffs[1].T
 
     def length(laps: float) -> float:
@@ -301,29 +354,74 @@ def camera_poses(config: SynthConfig) -> np.ndarray:
     travel = config.speed * duration
     laps = max(1, math.ceil(travel / (max_scale * length(1)))) if config.loop else 0.5
     scale = min(travel / length(laps), max_scale)
-    phase = 2.0 * np.pi * laps * np.linspace(0.0, 1.0, config.frames)
-    position = scale * curve(phase) + [0.0, 0.0, config.eye_height]
 
     # Yaw / pitch / roll: sinusoids whose yaw amplitude gives the mean turn rate (mean |d/dt| of
     # A sin is 4 A laps / duration), capped per axis.
     amplitude = config.turn_rate * duration / (4.0 * laps)
     swing = np.minimum(amplitude * np.asarray(config.swing_weights), config.swing_limits)
     offsets = rng.uniform(0.0, 2.0 * np.pi, 3)
-    yaw, pitch, roll = swing[:, None] * np.sin(phase + offsets[:, None])
-    yaw = yaw + rng.uniform(0.0, 2.0 * np.pi)
-    pitch = pitch + config.pitch
+    heading = rng.uniform(0.0, 2.0 * np.pi)
+    shake = _shake(config) if config.shake_rate > 0 else None
 
+    def poses(frame: np.ndarray) -> np.ndarray:
+        phase = 2.0 * np.pi * laps * _path_fraction(frame, config.frames)
+        position = scale * curve(phase) + [0.0, 0.0, config.eye_height]
+        yaw, pitch, roll = swing.reshape(3, *(1,) * phase.ndim) * np.sin(
+            phase + offsets.reshape(3, *(1,) * phase.ndim)
+        )
+        yaw = yaw + heading
+        pitch = pitch + config.pitch
+        if shake is not None:
+            d_yaw, d_pitch, d_roll = shake(frame / config.fps)
+            yaw, pitch, roll = yaw + d_yaw, pitch + d_pitch, roll + d_roll
+        return _look_poses(position, yaw, pitch, roll)
+
+    return poses
+
+
+def _path_fraction(frame: np.ndarray, frames: int) -> np.ndarray:
+    """How far along the path frame position `frame` is, 0 at the first frame and 1 at the last;
+    bit for bit ``np.linspace(0, 1, frames)`` at whole frames."""
+    fraction = np.asarray(frame, np.float64) * (1.0 / (frames - 1))
+    return np.where(frame == frames - 1, 1.0, fraction)
+
+
+def _shake(config: SynthConfig) -> Callable[[np.ndarray], np.ndarray]:
+    """Seeded yaw, pitch and roll offsets (3, ...) as a function of time in seconds: per axis
+    two sinusoids whose peak rates add up to shake_rate times the axis weight."""
+    rng = np.random.default_rng((config.seed, _SHAKE_STREAM))
+    hz = rng.uniform(*config.shake_hz, size=(3, 2))
+    phase = rng.uniform(0.0, 2.0 * np.pi, size=(3, 2))
+    rate = config.shake_rate * np.asarray(config.shake_weights)[:, None] / 2.0
+    amplitude = rate / (2.0 * np.pi * hz)  # peak rate of A sin(2 pi f t) is 2 pi f A
+
+    def offsets(t: np.ndarray) -> np.ndarray:
+        t = np.asarray(t, np.float64)[None, None]
+        shape = (3, 2, *(1,) * (t.ndim - 2))
+        waves = amplitude.reshape(shape) * np.sin(
+            2.0 * np.pi * hz.reshape(shape) * t + phase.reshape(shape)
+        )
+        return waves.sum(axis=1)
+
+    return offsets
+
+
+def _look_poses(
+    position: np.ndarray, yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray
+) -> np.ndarray:
+    """Camera-to-world poses (..., 4, 4) looking along yaw (about world z, up) and pitch (down),
+    rolled about the viewing axis (OpenCV camera axes)."""
     forward = np.stack(
         [np.cos(pitch) * np.cos(yaw), np.cos(pitch) * np.sin(yaw), -np.sin(pitch)], -1
     )
     right = np.stack([np.sin(yaw), -np.cos(yaw), np.zeros_like(yaw)], -1)  # forward x world up
     down = np.cross(forward, right)
-    cos_r, sin_r = np.cos(roll)[:, None], np.sin(roll)[:, None]
-    poses = np.tile(np.eye(4), (config.frames, 1, 1))
-    poses[:, :3, 0] = cos_r * right + sin_r * down
-    poses[:, :3, 1] = cos_r * down - sin_r * right
-    poses[:, :3, 2] = forward
-    poses[:, :3, 3] = position
+    cos_r, sin_r = np.cos(roll)[..., None], np.sin(roll)[..., None]
+    poses = np.broadcast_to(np.eye(4), (*yaw.shape, 4, 4)).copy()
+    poses[..., :3, 0] = cos_r * right + sin_r * down
+    poses[..., :3, 1] = cos_r * down - sin_r * right
+    poses[..., :3, 2] = forward
+    poses[..., :3, 3] = position
     return poses
 
 
@@ -375,13 +473,29 @@ class _Renderer:
         self.ray_length = np.linalg.norm(self.rays_cam, axis=-1)  # rotations keep it
         self.light = np.asarray(config.light_position, np.float32)
 
-    def render(self, pose: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        """RGB (H, W, 3) uint8 and depth (H, W) uint16 seen from camera-to-world `pose`."""
+    def render(
+        self, exposure: list[np.ndarray], depth_pose: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """RGB (H, W, 3) uint8 averaged over the camera-to-world poses of `exposure` (motion
+        blur), and depth (H, W) uint16 seen from `depth_pose`. A pose is (4, 4), or (H, 1, 4, 4)
+        for one pose per image row (rolling shutter)."""
         cfg = self.config
-        rotation = pose[:3, :3].astype(np.float32)
+        colour, z, valid = self._shade(depth_pose)
+        for pose in exposure:
+            if pose is not depth_pose:
+                colour = colour + self._shade(pose)[0]
+        colour = colour / np.float32(len(exposure)) if len(exposure) > 1 else colour
+        noise = rng.standard_normal(colour.shape, dtype=np.float32)
+        rgb = np.clip(np.rint(colour + cfg.rgb_noise * noise), 0, 255).astype(np.uint8)
+        return rgb, self._depth(z.astype(np.float64), valid, rng)
+
+    def _shade(self, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Noise-free colour (H, W, 3) in 8-bit levels, depth (m) and depth validity from `pose`."""
+        cfg = self.config
+        rotation = pose[..., :3, :3].astype(np.float32)
         # elementwise, not a BLAS product: the same rays on every CPU
-        dirs = sum(self.rays_cam[..., k, None] * rotation[:, k] for k in range(3))
-        origin = np.broadcast_to(pose[:3, 3].astype(np.float32), dirs.shape)
+        dirs = sum(self.rays_cam[..., k, None] * rotation[..., :, k] for k in range(3))
+        origin = np.broadcast_to(pose[..., :3, 3].astype(np.float32), dirs.shape)
         hit = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([origin, dirs], -1)))
         hit_ok = np.isfinite(hit["t_hit"].numpy())
         normal = hit["primitive_normals"].numpy()
@@ -403,11 +517,8 @@ class _Renderer:
         facing = normal * -np.sign(normal_dot_ray)[..., None]  # the side the camera sees
         diffuse = np.clip(np.einsum("...i,...i->...", facing, to_light), 0.0, 1.0)
         shade = (cfg.ambient + (1.0 - cfg.ambient) * diffuse) * hit_ok
-        noise = rng.standard_normal(albedo.shape, dtype=np.float32)
-        colour = 255.0 * albedo * shade[..., None] + cfg.rgb_noise * noise
-        rgb = np.clip(np.rint(colour), 0, 255).astype(np.uint8)
-        valid = hit_ok & (cos_incidence >= cos_grazing)
-        return rgb, self._depth(z.astype(np.float64), valid, rng)
+        colour = 255.0 * albedo * shade[..., None]
+        return colour, z, hit_ok & (cos_incidence >= cos_grazing)
 
     def _distance(
         self, box: np.ndarray, outward: np.ndarray, axis: np.ndarray, origin: np.ndarray,
@@ -509,10 +620,16 @@ def _write_sequence(
     (root / "rgb").mkdir()
     (root / "depth").mkdir()
     renderer = _Renderer(config)
-    poses = camera_poses(config)
+    path = camera_path(config)
+    poses = path(np.arange(config.frames, dtype=np.float64))
+    rows, instants = sensor_timing(config)
     rgb_lines, depth_lines, gt_lines = [], [], []
     for i, pose in enumerate(poses):
-        rgb, depth = renderer.render(pose, np.random.default_rng((config.seed, _SENSOR_STREAM, i)))
+        depth_pose = pose if rows is None else path(i + rows)
+        exposure = [depth_pose if t == 0 else path(i + t + (0 if rows is None else rows))
+                    for t in instants]  # fmt: skip
+        rng = np.random.default_rng((config.seed, _SENSOR_STREAM, i))
+        rgb, depth = renderer.render(exposure, depth_pose, rng)
         time = config.start_time + i / config.fps
         stamp, depth_stamp = f"{time:.6f}", f"{time + config.depth_delay:.6f}"
         _imwrite(root / f"rgb/{stamp}.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
@@ -533,6 +650,18 @@ def _write_sequence(
         header = _TUM_HEADER.format(what=what, seed=config.seed, columns=columns)
         (root / name).write_text(header + "".join(lines))
     (root / "calibration.txt").write_text(" ".join(f"{x:.9f}" for x in config.intrinsics) + "\n")
+
+
+def sensor_timing(config: SynthConfig) -> tuple[np.ndarray | None, np.ndarray]:
+    """When, relative to a frame's time stamp and in frames, each image row is read (H, 1;
+    None for a global shutter) and the instants the colour exposure averages over."""
+    rows = None
+    if config.readout > 0:
+        rows = (np.linspace(-0.5, 0.5, config.height) * config.readout)[:, None]
+    instants = np.zeros(1)
+    if config.exposure > 0:
+        instants = np.linspace(-0.5, 0.5, config.exposure_samples) * config.exposure
+    return rows, instants
 
 
 def _imwrite(path: Path, image: np.ndarray) -> None:

@@ -30,8 +30,17 @@ def test_version_and_help_teach():
 
 def test_usage_errors_exit_2():
     assert run("synth", "x", "--size", "640by480").exit_code == 2
+    assert run("synth", "x", "--motion", "sprint").exit_code == 2
     assert run("convert", "tum").exit_code == 2
     assert run("nope").exit_code == 2
+
+
+def test_synth_motions_and_sensor_effects(tmp_path):
+    out = tmp_path / "shaky"
+    result = run("-q", "synth", out, "--frames", "3", "--size", "64x48", "--motion", "shake",
+                 "--blur", "--rolling-shutter", "--holes")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert len(list((out / "rgb").glob("*.png"))) == 3
 
 
 def test_inspect_rejects_non_stores(tmp_path):

@@ -12,7 +12,15 @@ import pytest
 
 from bgs_batch.errors import InputError, Interrupted, OutputExistsError
 from bgs_batch.geometry import pose_matrix
-from converters.synthetic import SynthConfig, synthesize
+from converters.synthetic import (
+    EFFECTS,
+    SynthConfig,
+    camera_path,
+    camera_poses,
+    motion_config,
+    sensor_timing,
+    synthesize,
+)
 
 SMALL = {"frames": 30, "width": 160, "height": 120, "seed": 3}
 
@@ -230,6 +238,10 @@ def test_images_are_richly_textured(open_seq: Path) -> None:
         {"depth_delay": 0.02},
         {"hole_fraction": 0.7},
         {"depth_range": (0.3, 20.0)},
+        {"exposure": 1.5},
+        {"readout": -0.1},
+        {"shake_rate": -1.0},
+        {"exposure": 0.5, "exposure_samples": 1},
     ],
 )
 def test_bad_config_is_input_error(change: dict, tmp_path: Path) -> None:
@@ -284,3 +296,69 @@ def test_sigterm_leaves_nothing(tmp_path: Path) -> None:
     assert error.value.exit_code == 128 + signal.SIGTERM
     assert list(tmp_path.iterdir()) == []
     assert signal.getsignal(signal.SIGTERM) is handler  # restored
+
+
+# ---------------------------------------------------------------- motions and sensor effects
+
+
+def angular_speeds(c2w: np.ndarray, fps: float) -> np.ndarray:
+    """Rotation rate (rad/s) between consecutive poses."""
+    relative = np.einsum("nji,njk->nik", c2w[:-1, :3, :3], c2w[1:, :3, :3])
+    cos = np.clip((np.trace(relative, axis1=1, axis2=2) - 1) / 2, -1, 1)
+    return np.arccos(cos) * fps
+
+
+def test_shake_turns_like_tum_fr1_rpy_and_the_other_motions_do_not() -> None:
+    rates = {motion: angular_speeds(camera_poses(motion_config(motion, frames=300, seed=11)), 30)
+             for motion in ("handheld", "walk", "shake")}  # fmt: skip
+    assert 0.8 < np.median(rates["shake"]) < 2.5 and rates["shake"].max() < 4.0
+    assert np.median(rates["handheld"]) < 0.6 and np.median(rates["walk"]) < 0.6
+    # over 3 s, before the room caps the speed of an open path
+    travel = {motion: np.linalg.norm(np.diff(camera_poses(motion_config(
+        motion, frames=90, seed=11))[:, :3, 3], axis=0), axis=1).sum() * 30 / 89
+        for motion in ("handheld", "walk", "shake")}  # fmt: skip
+    assert travel["walk"] > 1.4 * travel["handheld"] > 4 * travel["shake"]  # 0.5, 0.3, 0.08
+
+
+def test_the_path_between_frames_is_continuous_and_exact_at_frames() -> None:
+    config = motion_config("shake", frames=20, seed=5)
+    path = camera_path(config)
+    frames = camera_poses(config)
+    assert np.array_equal(path(np.arange(20.0)), frames)
+    halfway = path(np.array([7.5]))[0]
+    assert np.abs(halfway[:3, 3] - (frames[7, :3, 3] + frames[8, :3, 3]) / 2).max() < 2e-3
+
+
+def test_rolling_shutter_reads_rows_in_turn_and_blur_spans_the_exposure() -> None:
+    rows, instants = sensor_timing(SynthConfig(height=120, **EFFECTS["rolling_shutter"]))
+    assert rows.shape == (120, 1) and rows[0, 0] == -0.45 and rows[-1, 0] == 0.45
+    assert np.array_equal(instants, [0.0])
+    rows, instants = sensor_timing(SynthConfig(**EFFECTS["blur"]))
+    assert rows is None and np.allclose(instants, [-0.25, -0.125, 0, 0.125, 0.25])
+
+
+def _sharpness(seq: Path) -> float:
+    """Mean squared Laplacian of the grey images: lower when blurred."""
+    grey = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in sorted((seq / "rgb").glob("*.png"))]
+    values = [cv2.Laplacian(g.astype(np.float32), cv2.CV_32F).var() for g in grey]
+    return float(np.mean(values))
+
+
+def test_blur_rolling_shutter_and_holes_change_what_the_sensor_sees(tmp_path: Path) -> None:
+    small = {**SMALL, "frames": 6}
+    sharp = synthesize(tmp_path / "sharp", motion_config("shake", **small))
+    hard = synthesize(tmp_path / "hard", motion_config(
+        "shake", ("blur", "rolling_shutter", "holes"), **small))  # fmt: skip
+    assert _sharpness(hard) < 0.8 * _sharpness(sharp)
+    assert (poses(hard) == poses(sharp)).all()  # the same path: ground truth at the time stamp
+    holes = [np.mean(cv2.imread(str(f), cv2.IMREAD_UNCHANGED) == 0)
+             for f in sorted((hard / "depth").glob("*.png"))]  # fmt: skip
+    assert min(holes) > 0.15
+    # the rolling shutter moves the depth of the top and bottom rows, not of the middle ones
+    def depth(seq: Path, k: int) -> np.ndarray:
+        return cv2.imread(str(sorted((seq / "depth").glob("*.png"))[k]), cv2.IMREAD_UNCHANGED)
+    skewed = synthesize(tmp_path / "skewed", motion_config("shake", ("rolling_shutter",), **small))
+    both = (depth(sharp, 3) > 0) & (depth(skewed, 3) > 0)
+    change = np.abs(depth(sharp, 3).astype(np.float64) - depth(skewed, 3)) * both
+    h = change.shape[0]
+    assert change[: h // 8].mean() > 5 * change[h // 2 - 4 : h // 2 + 4].mean()
