@@ -33,3 +33,31 @@ def ate(estimated: np.ndarray, ground_truth: np.ndarray, with_scale: bool = Fals
     errors = np.linalg.norm(scale * est @ rot.T + trans - gt, axis=1)
     return {"rmse": float(np.sqrt(np.mean(errors**2))), "mean": float(errors.mean()),
             "median": float(np.median(errors)), "max": float(errors.max()), "frames": int(ok.sum())}
+
+
+def rpe(estimated: np.ndarray, ground_truth: np.ndarray, delta: int = 1) -> dict[str, float]:
+    """Relative pose error over `delta` frames (Sturm et al. 2012, as TUM's evaluate_rpe): for
+    each pair i, i+delta with both poses known, the motion E_i = (Q_i⁻¹ Q_{i+δ})⁻¹ (P_i⁻¹ P_{i+δ})
+    between the estimate P and ground truth Q; RMSE of its translation (m) and mean of its
+    rotation angle (degrees). `estimated`, `ground_truth`: camera-to-world poses (N, 4, 4).
+
+    No alignment is needed: the error of a relative motion does not depend on the world frame.
+    """
+    known = np.all(np.isfinite(estimated), (1, 2)) & np.all(np.isfinite(ground_truth), (1, 2))
+    pairs = np.flatnonzero(known[:-delta] & known[delta:])
+    if pairs.size == 0:
+        raise ValueError(f"no pair of frames {delta} apart has both poses")
+    est = np.linalg.inv(estimated[pairs]) @ estimated[pairs + delta]
+    gt = np.linalg.inv(ground_truth[pairs]) @ ground_truth[pairs + delta]
+    error = np.linalg.inv(gt) @ est
+    translation = np.linalg.norm(error[:, :3, 3], axis=1)
+    cos = np.clip((np.trace(error[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
+    return {"translation_rmse": float(np.sqrt(np.mean(translation**2))),
+            "rotation_mean_deg": float(np.degrees(np.arccos(cos)).mean()),
+            "pairs": int(pairs.size)}  # fmt: skip
+
+
+def path_length(positions: np.ndarray) -> float:
+    """Length (m) of the polyline through the finite positions (N, 3), in order."""
+    finite = positions[np.all(np.isfinite(positions), 1)]
+    return float(np.linalg.norm(np.diff(finite, axis=0), axis=1).sum())
