@@ -19,14 +19,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import resource
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-import numpy as np
+from baseline import open3d_dense_slam
 
 from bgs_batch.config import load_config
 from bgs_batch.metrics import ate
@@ -39,14 +37,6 @@ from status_page import recorded
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DEFAULT_TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_rpy"
-# Open3D dense SLAM settings (its t_reconstruction_system defaults, voxel 1 cm)
-O3D_VOXEL = 0.01
-O3D_BLOCK_RESOLUTION = 16
-O3D_BLOCK_COUNT = 40_000
-O3D_DEPTH_MAX = 3.0
-O3D_DEPTH_MIN = 0.1
-O3D_DEPTH_DIFF = 0.07
-O3D_TRUNC_MULTIPLIER = 8.0
 TARGET_ATE_M = 0.025
 TARGET_FPS = 0.5
 TARGET_KEYFRAME_SHARE = 0.35
@@ -70,44 +60,6 @@ def depth_ause(job: Path) -> dict[str, float]:
     return {name: by_variance[name]["ause_raw"] for name in AUSE_LABELS}
 
 
-def open3d_dense_slam(store_path: Path, frames: int) -> tuple[np.ndarray, float]:
-    """Camera-to-world poses and wall time of Open3D's frame-to-model TSDF SLAM, run in a
-    child process: its TSDF volume (GBs) and thread pools stay out of the bgs runs' process,
-    whose speed and peak RSS the bench reports."""
-    with multiprocessing.get_context("spawn").Pool(1) as pool:
-        return pool.apply(_open3d_dense_slam, (store_path, frames))
-
-
-def _open3d_dense_slam(store_path: Path, frames: int) -> tuple[np.ndarray, float]:
-    import open3d as o3d  # in the child only
-    import open3d.core as o3c
-
-    device = o3c.Device("CPU:0")
-    with FrameStore(store_path) as store:
-        intrinsics = o3c.Tensor(store.intrinsics, o3c.float64)
-        pose = o3c.Tensor(np.eye(4), o3c.float64)
-        model = o3d.t.pipelines.slam.Model(O3D_VOXEL, O3D_BLOCK_RESOLUTION, O3D_BLOCK_COUNT,
-                                           pose, device)  # fmt: skip
-        current = o3d.t.pipelines.slam.Frame(store.height, store.width, intrinsics, device)
-        raycast = o3d.t.pipelines.slam.Frame(store.height, store.width, intrinsics, device)
-        scale = store.depth_scale
-        poses = []
-        start = time.perf_counter()
-        for i in range(frames):
-            current.set_data_from_image("depth", o3d.t.geometry.Image(store.read_depth_raw(i)))
-            current.set_data_from_image("color", o3d.t.geometry.Image(store.read_rgb(i)))
-            if i > 0:
-                result = model.track_frame_to_model(current, raycast, scale, O3D_DEPTH_MAX,
-                                                    O3D_DEPTH_DIFF)  # fmt: skip
-                pose = pose @ result.transformation
-            poses.append(pose.cpu().numpy())
-            model.update_frame_pose(i, pose)
-            model.integrate(current, scale, O3D_DEPTH_MAX, O3D_TRUNC_MULTIPLIER)
-            model.synthesize_model_frame(raycast, scale, O3D_DEPTH_MIN, O3D_DEPTH_MAX,
-                                         O3D_TRUNC_MULTIPLIER, False)  # fmt: skip
-        return np.stack(poses), time.perf_counter() - start
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tum", type=Path, default=DEFAULT_TUM)
@@ -124,7 +76,7 @@ def main() -> None:
         with FrameStore(store_path) as store:
             n = len(store)
             gt = store.poses_gt[:, :3, 3]
-        poses, seconds = open3d_dense_slam(store_path, n)
+        poses, seconds, _ = open3d_dense_slam(store_path, n)
         o3d_ate = ate(poses[:, :3, 3], gt)["rmse"]
         o3d_fps = n / seconds
         rows.append(("Open3D dense SLAM (TSDF 1 cm)", n, o3d_ate, o3d_fps, None))

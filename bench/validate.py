@@ -1,0 +1,221 @@
+"""The validation suite: the `cpu` preset beside Open3D's dense SLAM on recordings nobody tunes on.
+
+Usage: .venv/bin/python bench/validate.py [--seeds N] [--only NAME ...] [--set KEY=VALUE ...]
+       [--max-frames N]
+
+A change to tracking, mapping or a preset counts only when it holds here, on every sequence and
+over seeds, not only on the dev excerpt it was tried on. The sequences:
+
+- ``dev``: the 240-frame TUM fr1/rpy excerpt in ``../shared/data`` that the presets were tuned
+  on, shown for reference (its numbers flatter the method);
+- ``val-240``, ``val-420``: the real validation pieces of the same recording (frames 240-299 and
+  420-479, ``../shared/data/tum_rgbd/validation/``), which no setting is ever tuned on;
+- ``walk``, ``shake``, ``loop``, ``hard``: synthetic rooms from ``bgs synth`` with seeds no test
+  or preset uses: a brisk walk, fr1/rpy-like roll/pitch/yaw shaking, a loop, and shaking with
+  motion blur, a rolling shutter and large depth holes.
+
+Every sequence is converted with the defaults (what a user gets) and run with the `cpu` preset at
+seeds 0..N-1 (plus the ``--set`` overrides), and once with Open3D's frame-to-model TSDF SLAM in
+a child process (`baseline.py`). Per sequence it prints: the ATE of each seed and their mean,
+the ratio of the mean to Open3D's ATE, the frame-to-frame error (RPE over one frame, translation,
+mean over seeds), the estimated path length of seed 0 beside the true one and Open3D's, CPU
+seconds per frame of bgs (all threads) and of Open3D, bgs's frames per second, its tracking
+seconds per frame, median tracking iterations, and the share of frames whose start the warm start
+moved (registration trusted). The SUMMARY line gives the mean ratio to
+Open3D over the real validation pieces and over the synthetic sequences, the dev ratio, and the
+slowest fps. ATEs are deterministic for a given seed; times depend on the machine's load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from baseline import open3d_dense_slam
+
+from bgs_batch.config import ConfigError, load_config
+from bgs_batch.metrics import ate, path_length, rpe
+from bgs_batch.store import FrameStore
+from converters.synthetic import motion_config, synthesize
+from converters.tum import TumOptions, convert_tum
+from jobs.run import LOG_FILE, run_job
+from outputs.trajectory import read_tum
+
+from status_page import recorded
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+TUM = SHARED_DATA / "tum_rgbd"
+REAL = {  # name: TUM folder
+    "dev": TUM / "rgbd_dataset_freiburg1_rpy",
+    "val-240": TUM / "validation" / "rgbd_dataset_freiburg1_rpy_240_299",
+    "val-420": TUM / "validation" / "rgbd_dataset_freiburg1_rpy_420_479",
+}
+VALIDATION_PIECES = ("val-240", "val-420")
+SYNTHETIC_FRAMES = 90
+SYNTHETIC_SIZE = (320, 240)
+SYNTHETIC = {  # name: (motion, effects, loop, seed); seeds that no test, preset or demo uses
+    "walk": ("walk", (), False, 7101),
+    "shake": ("shake", (), False, 7202),
+    "loop": ("handheld", (), True, 7303),
+    "hard": ("shake", ("blur", "rolling_shutter", "holes"), False, 7404),
+}
+
+
+@dataclass
+class SequenceResult:
+    """One sequence: Open3D's run and one bgs run per seed."""
+
+    name: str
+    frames: int
+    true_length: float
+    o3d_ate: float
+    o3d_rpe: float
+    o3d_length: float
+    o3d_cpu_per_frame: float
+    ates: list[float] = field(default_factory=list)
+    rpes: list[float] = field(default_factory=list)
+    lengths: list[float] = field(default_factory=list)
+    cpu_per_frame: list[float] = field(default_factory=list)
+    fps: list[float] = field(default_factory=list)
+    tracking_per_frame: list[float] = field(default_factory=list)
+    median_iterations: list[float] = field(default_factory=list)
+    registered: list[float] = field(default_factory=list)  # share of frames the warm start moved
+
+    @property
+    def ratio(self) -> float:
+        return statistics.mean(self.ates) / self.o3d_ate
+
+
+def make_stores(root: Path, only: list[str], max_frames: int | None) -> dict[str, Path]:
+    """Convert every selected sequence (synthesising the synthetic ones first) with defaults,
+    or only its first `max_frames` frames."""
+    stores = {}
+    for name, folder in REAL.items():
+        if only and name not in only:
+            continue
+        if not (folder / "rgb.txt").is_file():
+            sys.exit(f"bench/validate.py: no TUM folder at {folder} (../shared/data is needed)")
+        stores[name] = convert_tum(folder, root / f"{name}.h5", TumOptions(max_frames=max_frames))
+    for name, (motion, effects, loop, seed) in SYNTHETIC.items():
+        if only and name not in only:
+            continue
+        width, height = SYNTHETIC_SIZE
+        config = motion_config(motion, effects, frames=SYNTHETIC_FRAMES, width=width,
+                               height=height, seed=seed, loop=loop)  # fmt: skip
+        sequence = synthesize(root / name, config)
+        stores[name] = convert_tum(sequence, root / f"{name}.h5", TumOptions(max_frames=max_frames))
+    return stores
+
+
+def run_sequence(name: str, store: Path, root: Path, seeds: int, overrides: list[str]
+                 ) -> SequenceResult:  # fmt: skip
+    """Open3D once and the cpu preset per seed on one store."""
+    with FrameStore(store) as frames:
+        n, gt = len(frames), frames.poses_gt
+    o3d_poses, _, o3d_cpu = open3d_dense_slam(store, n)
+    result = SequenceResult(
+        name, n, path_length(gt[:, :3, 3]), ate(o3d_poses[:, :3, 3], gt[:, :3, 3])["rmse"],
+        rpe(o3d_poses, gt)["translation_rmse"], path_length(o3d_poses[:, :3, 3]), o3d_cpu / n,
+    )  # fmt: skip
+    for seed in range(seeds):
+        job = root / f"{name}_seed{seed}"
+        cpu_before = _cpu_seconds()
+        summary = run_job(store, job, load_config("cpu", [*overrides, f"seed={seed}"]))
+        cpu = _cpu_seconds() - cpu_before
+        _, poses = read_tum(job / "trajectory.txt")
+        events = [json.loads(line) for line in (job / LOG_FILE).read_text().splitlines()]
+        result.ates.append(summary.ate_rmse_m)
+        result.rpes.append(rpe(poses, gt)["translation_rmse"])
+        result.lengths.append(path_length(poses[:, :3, 3]))
+        result.cpu_per_frame.append(cpu / n)
+        result.fps.append(summary.fps)
+        result.tracking_per_frame.append(summary.stage_seconds["tracking"] / n)
+        result.median_iterations.append(
+            float(np.median([e["track_iterations"] for e in events if "track_iterations" in e]))
+        )
+        starts = [e["track_start"]["start"] for e in events if "track_start" in e]
+        result.registered.append(starts.count("registration") / max(1, n - 1))
+        print(f"  {name} seed {seed}: ATE {summary.ate_rmse_m * 100:.2f} cm, "
+              f"{summary.fps:.2f} fps", flush=True)  # fmt: skip
+    return result
+
+
+def _cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def print_table(results: list[SequenceResult], seeds: int) -> None:
+    seed_columns = "".join(f"{f'seed {s}':>8}" for s in range(seeds))
+    header = (f"{'sequence':<9}{'frames':>7}{'Open3D':>8}{seed_columns}{'mean':>8}{'ratio':>7}"
+              f"{'RPE bgs':>9}{'RPE O3D':>9}{'path bgs/true/O3D m':>21}{'cpu s/f':>9}"
+              f"{'O3D':>6}{'fps':>6}{'track s/f':>10}{'iters':>6}{'warm':>6}")  # fmt: skip
+    print("ATE and RPE (1 frame, translation) in cm; ratio = mean ATE / Open3D's ATE")
+    print(header)
+    print("-" * len(header))
+    for r in results:
+        ates = "".join(f"{a * 100:>8.2f}" for a in r.ates)
+        lengths = f"{r.lengths[0]:.2f}/{r.true_length:.2f}/{r.o3d_length:.2f}"
+        print(f"{r.name:<9}{r.frames:>7}{r.o3d_ate * 100:>8.2f}{ates}"
+              f"{statistics.mean(r.ates) * 100:>8.2f}{r.ratio:>7.2f}"
+              f"{statistics.mean(r.rpes) * 100:>9.2f}{r.o3d_rpe * 100:>9.2f}{lengths:>21}"
+              f"{statistics.mean(r.cpu_per_frame):>9.2f}{r.o3d_cpu_per_frame:>6.2f}"
+              f"{statistics.mean(r.fps):>6.2f}{statistics.mean(r.tracking_per_frame):>10.2f}"
+              f"{statistics.median(r.median_iterations):>6.0f}"
+              f"{statistics.mean(r.registered):>6.0%}")  # fmt: skip
+
+
+def summary_line(results: list[SequenceResult]) -> str:
+    by_name = {r.name: r for r in results}
+    parts = []
+    pieces = [by_name[n].ratio for n in VALIDATION_PIECES if n in by_name]
+    if pieces:
+        parts.append(f"real validation ATE/Open3D mean {statistics.mean(pieces):.2f}x "
+                     f"(worst {max(pieces):.2f}x)")  # fmt: skip
+    synthetic = [by_name[n].ratio for n in SYNTHETIC if n in by_name]
+    if synthetic:
+        parts.append(f"synthetic mean {statistics.mean(synthetic):.2f}x "
+                     f"(worst {max(synthetic):.2f}x)")  # fmt: skip
+    if "dev" in by_name:
+        parts.append(f"dev {by_name['dev'].ratio:.2f}x")
+    slowest = min(results, key=lambda r: statistics.mean(r.fps))
+    parts.append(f"slowest {statistics.mean(slowest.fps):.2f} fps ({slowest.name})")
+    return "SUMMARY cpu preset: " + "; ".join(parts)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=3, help="cpu-preset seeds 0..N-1")
+    parser.add_argument("--only", nargs="+", default=[], choices=[*REAL, *SYNTHETIC],
+                        metavar="NAME", help="run only these sequences")  # fmt: skip
+    parser.add_argument("--set", dest="overrides", action="append", default=[],
+                        metavar="KEY=VALUE", help="settings to validate (repeatable)")  # fmt: skip
+    parser.add_argument("--max-frames", type=int, help="only the first N frames (quick trials)")
+    args = parser.parse_args()
+    try:  # a bad override fails now, not after the first runs
+        load_config("cpu", args.overrides)
+    except ConfigError as err:
+        sys.exit(f"bench/validate.py: {err}")
+    settings = " ".join(f"--set {o}" for o in args.overrides) or "no overrides"
+    print(f"bench/validate.py: cpu preset ({settings}), seeds 0-{args.seeds - 1}, beside "
+          "Open3D's dense SLAM (TSDF 1 cm)", flush=True)  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        stores = make_stores(root, args.only, args.max_frames)
+        results = [run_sequence(name, store, root, args.seeds, args.overrides)
+                   for name, store in stores.items()]  # fmt: skip
+    print()
+    print_table(results, args.seeds)
+    print(summary_line(results))
+
+
+if __name__ == "__main__":
+    with recorded("validate"):
+        main()
