@@ -80,6 +80,30 @@ class TrackingConfig:
     # parallax, so the two trade less. No preset uses it: the drift over a sequence did not
     # fall (docs/experiments.md)
     pivot_depth_ratio: float = 0.0
+    # Start each frame from the constant-velocity pose refined by dense RGB-D registration of
+    # the measured frame to the map rendered there (`registration`), falling back to constant
+    # velocity when it is not trusted; the paper's loss still decides the pose (docs/method.md §6)
+    warm_start: bool = False
+    # after a trusted warm start: this many iterations at tracking resolution only (0: the
+    # usual pyramid and budget)
+    warm_iterations: int = 0
+
+
+@dataclass
+class RegistrationConfig:
+    """Tracking's warm start: the measured frame registered to the rendered map by Gauss-Newton
+    on point-to-plane and photometric residuals (`bgs_batch.slam.registration`)."""
+
+    downscale: int = 2  # relative to the tracking resolution (the refinement sees that one)
+    coarsest_width: int = 24  # px: halve the tracking resolution until this narrow, then go
+    # coarse to fine (a wide basin at the top; 160 px wide frames get 4 levels, 320 px 5)
+    iterations: int = 10  # Gauss-Newton steps per level at most ...
+    converged: float = 1e-5  # ... fewer once a step's |ξ| (m and rad) is this small
+    max_distance: float = 0.07  # m; a point further from the rendered surface is not associated
+    min_alpha: float = 0.9  # rendered pixels with less alpha are not map (no surface there)
+    min_fitness: float = 0.5  # share of the frame's depth associated; below: constant velocity
+    max_shift: float = 0.1  # m from the constant-velocity pose ...
+    max_turn_deg: float = 10.0  # ... and degrees: a larger correction is not trusted
 
 
 @dataclass
@@ -233,6 +257,7 @@ class Config:
     checkpoint_every: int = 10  # frames between job checkpoints (and on SIGTERM/SIGUSR1/SIGINT)
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     seeding: SeedingConfig = field(default_factory=SeedingConfig)
     submaps: SubmapConfig = field(default_factory=SubmapConfig)
@@ -310,6 +335,15 @@ def check(config: Config) -> None:
     if config.tracking.pivot_depth_ratio < 0:
         raise ConfigError(f"tracking.pivot_depth_ratio={config.tracking.pivot_depth_ratio} must "
                           "be >= 0 (0: rotate about the camera centre, 1: about the median depth)")
+    r, t = config.registration, config.tracking
+    if r.downscale < 1 or r.coarsest_width < 8 or r.iterations < 1:
+        raise ConfigError(f"registration.downscale={r.downscale} must be >= 1, "
+                          f"registration.coarsest_width={r.coarsest_width} >= 8 and "
+                          f"registration.iterations={r.iterations} >= 1")
+    if not 0 <= r.min_fitness <= 1 or t.warm_iterations < 0:
+        raise ConfigError(f"registration.min_fitness={r.min_fitness} must be in [0, 1] and "
+                          f"tracking.warm_iterations={t.warm_iterations} >= 0 (0: the usual "
+                          "budget)")
 
 
 def for_store(config: Config, recommended_crop: int, store: str) -> tuple[Config, dict[str, str]]:

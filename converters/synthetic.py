@@ -452,7 +452,7 @@ def _value_noise(u: np.ndarray, v: np.ndarray, seed: np.ndarray) -> np.ndarray:
     return bottom * (1 - sv) + top * sv
 
 
-class _Renderer:
+class RoomRenderer:
     """Ray-casts the seeded scene and shades / corrupts frames; one instance per sequence."""
 
     def __init__(self, config: SynthConfig) -> None:
@@ -619,7 +619,7 @@ def _write_sequence(
     """Render every frame into root and write the TUM list, ground-truth and calibration files."""
     (root / "rgb").mkdir()
     (root / "depth").mkdir()
-    renderer = _Renderer(config)
+    renderer = RoomRenderer(config)
     path = camera_path(config)
     poses = path(np.arange(config.frames, dtype=np.float64))
     rows, instants = sensor_timing(config)

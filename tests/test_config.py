@@ -57,3 +57,11 @@ def test_refinement_settings_are_checked():
 def test_a_pivot_behind_the_camera_is_refused():
     with pytest.raises(ConfigError, match="pivot_depth_ratio=-0.5 must be >= 0"):
         load_config("cpu", ["tracking.pivot_depth_ratio=-0.5"])
+
+
+@pytest.mark.parametrize("override", ["registration.downscale=0", "registration.coarsest_width=4",
+                                      "registration.iterations=0", "registration.min_fitness=1.5",
+                                      "tracking.warm_iterations=-1"])  # fmt: skip
+def test_warm_start_settings_are_checked(override):
+    with pytest.raises(ConfigError, match=override.split("=")[0].replace(".", r"\.")):
+        load_config("cpu", [override])

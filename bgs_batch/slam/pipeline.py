@@ -132,6 +132,8 @@ class Slam:
             c2w = np.ascontiguousarray(torch.linalg.inv(result.w2c).numpy())
             event.update(track_loss=result.loss, track_iterations=result.iterations,
                          track_doubled=result.doubled)  # fmt: skip
+            if result.start is not None:
+                event["track_start"] = result.start
         return c2w, result.score_color, result.score_depth
 
     def _switch_submap(self, index: int, event: dict[str, Any]) -> np.ndarray:

@@ -9,6 +9,12 @@ levers: a coarse-to-fine image pyramid and early stopping once the loss stops im
 lowest-loss pose of the finest level is kept, with its predictive-surprise scores (Eq. 9).
 Like LoopSplat, a frame that starts far worse than the frames before it (fast motion) gets
 twice the iterations (``tracking.init_err_ratio``).
+
+With ``tracking.warm_start`` the optimisation starts instead from the constant-velocity pose
+corrected by dense RGB-D registration of the measured frame to the map rendered there
+(`registration.register`); an untrusted registration (too little overlap, or a correction
+beyond ``registration.max_shift`` / ``max_turn_deg``) falls back to constant velocity. Either
+way the paper's loss has the final word: the start only decides where Adam begins.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from __future__ import annotations
 import math
 import statistics
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -25,6 +32,7 @@ from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.frames import Level, block_mean, downsample
 from bgs_batch.slam.gaussian_map import GaussianMap
 from bgs_batch.slam.losses import predictive_variances, surprise_scores, tracking_loss
+from bgs_batch.slam.registration import View, register
 
 Variances = tuple[torch.Tensor, torch.Tensor]  # sensor colour [H,W,1], sensor depth [H,W,1]
 Images = tuple[torch.Tensor, ...]  # colour, depth, Σ_C, Σ_D of one render
@@ -40,6 +48,7 @@ class TrackResult:
     score_color: float
     score_depth: float
     doubled: bool  # the initial loss exceeded `init_err_ratio` × the median: twice the budget
+    start: dict[str, Any] | None = None  # the warm start's report (`Tracker.warm_start`)
 
 
 def constant_velocity(c2w_prev: torch.Tensor, c2w_prev2: torch.Tensor | None) -> torch.Tensor:
@@ -108,13 +117,19 @@ class Tracker:
         shapes = shape_matrices(gaussians.log_scales, gaussians.quats)  # the map stays fixed
         try:
             w2c, loss, iterations = w2c_init.to(torch.float64), float("inf"), 0
+            start = None
+            if self.cfg.tracking.warm_start:
+                w2c, start = self.warm_start(gaussians, shapes, frame, w2c)
             pivot = self.pivot(frame)
             threshold, doubled = self._doubling_threshold(), False
-            for depth, ((factor, level), budget) in enumerate(
-                zip(self.pyramid(frame), self.iteration_budget(), strict=True)
-            ):
+            schedule = list(zip(self.pyramid(frame), self.iteration_budget(), strict=True))
+            t = self.cfg.tracking
+            if start is not None and start["start"] == "registration" and t.warm_iterations:
+                # a trusted start needs no coarse levels: refine at tracking resolution only
+                schedule = [(schedule[-1][0], t.warm_iterations)]
+            for depth, ((factor, level), budget) in enumerate(schedule):
                 variances = self._sensor_at(sensor_color, sensor_depth, factor)
-                lr_scale = self.cfg.tracking.level_lr_factor**depth
+                lr_scale = t.level_lr_factor**depth
                 # the coarsest level tests its initial loss; finer levels inherit the doubling
                 w2c, loss, used, best, hard = self._optimise(
                     gaussians, shapes, level, variances, w2c, pivot, budget * (1 + doubled),
@@ -132,7 +147,33 @@ class Tracker:
         finally:
             for p in gmap.params.values():
                 p.requires_grad_(True)
-        return TrackResult(w2c, loss, iterations, *scores, doubled)
+        return TrackResult(w2c, loss, iterations, *scores, doubled, start)
+
+    def warm_start(self, gaussians: Gaussians, shapes: torch.Tensor, frame: Level,
+                   w2c: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:  # fmt: skip
+        """The registered start near `w2c` (constant velocity) and a report of it: which start
+        was used, the registration's fitness and RMS, and how far it moved the pose."""
+        r = self.cfg.registration
+        level = downsample(frame, self.cfg.tracking.downscale * r.downscale)
+        with torch.no_grad():
+            out = render(gaussians, w2c.float(), level.camera, shapes=shapes)
+        alpha = out.alpha.to(torch.float64)
+        covered = alpha >= r.min_alpha
+        depth = torch.where(covered, out.depth / alpha.clamp_min(r.min_alpha), 0.0)
+        color = out.color / alpha.clamp_min(r.min_alpha)
+        target = View.of(color, depth, level.camera)
+        result = register(View.of(level.rgb, level.depth, level.camera), target, r)
+        moved_m = float(result.transform[:3, 3].norm())
+        cos = (torch.trace(result.transform[:3, :3]) - 1) / 2
+        moved_deg = math.degrees(math.acos(float(cos.clamp(-1.0, 1.0))))
+        trusted = (result.fitness >= r.min_fitness and moved_m <= r.max_shift
+                   and moved_deg <= r.max_turn_deg)  # fmt: skip
+        report = {"start": "registration" if trusted else "constant_velocity",
+                  "fitness": result.fitness, "rmse": result.rmse,
+                  "iterations": result.iterations, "moved_m": moved_m,
+                  "moved_deg": moved_deg}  # fmt: skip
+        # x_target = T x_source and x_target = w2c x_world: the source's w2c is T⁻¹ w2c
+        return (torch.linalg.inv(result.transform) @ w2c if trusted else w2c), report
 
     def pivot(self, frame: Level) -> torch.Tensor:
         """The (4, 4) shift P of ``w2c = P exp(ξ) P⁻¹ w2c₀``: to the point on the optical axis

@@ -95,7 +95,8 @@ class SubmapRegistration:
             cfg.tracking, iterations=lc.iterations, rot_lr=lc.rot_lr, trans_lr=lc.trans_lr,
             downscale=lc.downscale, coarse_levels=lc.coarse_levels,
             coarse_fraction=lc.coarse_fraction, early_stop_rel=lc.early_stop_rel,
-            early_stop_patience=lc.early_stop_patience, init_err_ratio=0.0)  # fmt: skip
+            early_stop_patience=lc.early_stop_patience, init_err_ratio=0.0,
+            warm_start=False)  # fmt: skip
         # keyframes are already at mapping resolution: their levels are the tracker's input
         mapping = dataclasses.replace(cfg.mapping, downscale=1)
         self.tracker = Tracker(dataclasses.replace(cfg, tracking=tracking, mapping=mapping))

@@ -1,0 +1,76 @@
+"""The warm start's dense RGB-D registration (bgs_batch/slam/registration.py)."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from bgs_batch.config import RegistrationConfig
+from bgs_batch.render import Camera
+from bgs_batch.slam.registration import View, register
+from converters.synthetic import RoomRenderer, SynthConfig, camera_poses
+
+CONFIG = SynthConfig(width=160, height=120, seed=5, frames=30)
+
+
+def _offset(degrees: float, metres: float) -> np.ndarray:
+    """A rigid motion turning `degrees` about a skew axis and moving `metres` sideways-forward."""
+    axis = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    a = math.radians(degrees)
+    motion = np.eye(4)
+    motion[:3, :3] = np.eye(3) + math.sin(a) * k + (1 - math.cos(a)) * k @ k
+    motion[:3, 3] = metres * np.array([1.0, -0.5, 0.3]) / np.linalg.norm([1.0, -0.5, 0.3])
+    return motion
+
+
+def _view(renderer: RoomRenderer, c2w: np.ndarray, seed: int) -> View:
+    rgb, depth = renderer.render([c2w], c2w, np.random.default_rng(seed))
+    fx, fy, cx, cy = CONFIG.intrinsics
+    camera = Camera(fx, fy, cx, cy, CONFIG.width, CONFIG.height)
+    metres = torch.from_numpy(depth.astype(np.float64) / CONFIG.depth_scale)
+    return View.of(torch.from_numpy(rgb) / 255.0, metres, camera)
+
+
+def _errors(estimate: torch.Tensor, truth: np.ndarray) -> tuple[float, float]:
+    """(degrees, metres) between two rigid motions."""
+    error = np.linalg.inv(truth) @ estimate.numpy()
+    angle = math.degrees(math.acos(np.clip((np.trace(error[:3, :3]) - 1) / 2, -1, 1)))
+    return angle, float(np.linalg.norm(error[:3, 3]))
+
+
+@pytest.fixture(scope="module")
+def renderer() -> RoomRenderer:
+    return RoomRenderer(CONFIG)
+
+
+@pytest.mark.parametrize("frame", [3, 17])
+def test_a_known_3_degree_3_cm_offset_is_recovered(renderer, frame):
+    target_c2w = camera_poses(CONFIG)[frame]
+    offset = _offset(3.0, 0.03)  # source camera → target camera
+    source = _view(renderer, target_c2w @ offset, seed=1)
+    target = _view(renderer, target_c2w, seed=2)  # other sensor noise, holes
+    result = register(source, target, RegistrationConfig())
+    degrees, metres = _errors(result.transform, offset)
+    assert degrees < 0.1 and metres < 1e-3, (degrees, metres)
+    assert result.fitness > 0.8 and result.rmse < 0.02
+    start = _errors(torch.eye(4, dtype=torch.float64), offset)
+    assert start[0] > 2.9 and start[1] > 0.029  # the test starts where it says
+
+
+def test_the_same_input_gives_the_same_transform(renderer):
+    c2w = camera_poses(CONFIG)[8]
+    source, target = _view(renderer, c2w @ _offset(2.0, 0.02), 1), _view(renderer, c2w, 2)
+    first = register(source, target, RegistrationConfig())
+    again = register(source, target, RegistrationConfig())
+    assert torch.equal(first.transform, again.transform) and first.fitness == again.fitness
+
+
+def test_no_overlap_gives_no_fitness(renderer):
+    c2w = camera_poses(CONFIG)[8]
+    source = _view(renderer, c2w, 1)
+    empty = View(source.gray, torch.zeros_like(source.depth), source.camera)
+    result = register(source, empty, RegistrationConfig())
+    assert result.fitness == 0.0
+    assert torch.equal(result.transform, torch.eye(4, dtype=torch.float64))
