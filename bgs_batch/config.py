@@ -279,6 +279,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         "tracking.coarse_fraction": 0.4,
         "tracking.early_stop_rel": 1e-4,
         "tracking.early_stop_patience": 10,
+        # start from the frame registered to the rendered map; a trusted start is refined at
+        # tracking resolution only (docs/method.md §6; measured in docs/experiments.md)
+        "tracking.warm_start": True,
+        "tracking.warm_iterations": 20,
         "mapping.iterations": 40,
         "mapping.new_submap_iterations": 60,
         "mapping.downscale": 2,
