@@ -113,10 +113,10 @@ def test_depth_is_the_exact_face_distance_not_embrees_approximation() -> None:
     # Embree's hit distance differs in its last bits between instruction sets; the renderer
     # recomputes it in float64 from the face hit, so it agrees with Embree to float precision
     # and matches the closed form of a camera facing the floor
-    from converters.synthetic import _Renderer
+    from converters.synthetic import RoomRenderer
 
     config = SynthConfig(**SMALL)
-    renderer = _Renderer(config)
+    renderer = RoomRenderer(config)
     looking_down = np.diag([1.0, -1.0, -1.0, 1.0])  # camera z along world -z, 1.3 m above the floor
     looking_down[:3, 3] = [0.0, 0.0, 1.3]
     rays = renderer.rays_cam @ looking_down[:3, :3].T.astype(np.float32)

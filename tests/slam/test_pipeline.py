@@ -78,7 +78,8 @@ def test_init_err_ratio_doubles_the_budget_of_a_frame_that_starts_far_off(store3
 
     store = FrameStore(store30)
     overrides = ["mapping.downscale=1", "tracking.downscale=1", "tracking.iterations=6",
-                 "tracking.coarse_fraction=0.5", "tracking.early_stop_patience=0"]  # fmt: skip
+                 "tracking.coarse_fraction=0.5", "tracking.early_stop_patience=0",
+                 "tracking.warm_start=false"]  # fmt: skip  (the pyramid's budget is tested)
     for ratio, history, expect in ((0.0, [], False), (5.0, [1e9], False), (5.0, [1e-9], True)):
         cfg = load_config("cpu", [*overrides, f"tracking.init_err_ratio={ratio}"])
         slam = Slam(cfg, store.intrinsics, tmp_path / f"submaps{ratio}{expect}")
@@ -152,7 +153,7 @@ def test_pivot_turns_the_camera_about_a_point_in_the_scene(store30, tmp_path):
     from bgs_batch.store import FrameStore
 
     store = FrameStore(store30)
-    base = ["mapping.downscale=1", "tracking.downscale=1"]
+    base = ["mapping.downscale=1", "tracking.downscale=1", "tracking.warm_start=false"]
     slam = Slam(load_config("cpu", base), store.intrinsics, tmp_path / "submaps")
     slam.process(store[0])
     full, level = slam.prepare(store[1])

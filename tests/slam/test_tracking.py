@@ -14,7 +14,8 @@ from bgs_batch.store import FrameStore
 from converters.synthetic import SynthConfig, synthesize
 from converters.tum import convert_tum
 
-BASE = ["mapping.downscale=1", "tracking.downscale=1", "tracking.warm_start=true"]
+BASE = ["mapping.downscale=1", "tracking.downscale=1", "tracking.warm_start=true",
+        "registration.downscale=1"]  # 160×120 frames: register at their full resolution
 
 
 @pytest.fixture(scope="module")
