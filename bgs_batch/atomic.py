@@ -10,12 +10,14 @@ removed and the target is kept. Temporary names start with ``.tmp-`` on the same
 
 from __future__ import annotations
 
+import io
 import os
 import shutil
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 TEMP_PREFIX = ".tmp-"
 
@@ -64,6 +66,17 @@ def write_bytes(path: Path, data: bytes) -> None:
 def write_text(path: Path, text: str) -> None:
     """Write `text` (UTF-8) to `path` atomically."""
     write_bytes(path, text.encode())
+
+
+def save_torch(obj: Any, path: Path) -> None:
+    """`torch.save(obj)` to `path` atomically. Saved through a buffer, because torch names the
+    archive's root folder after the file it writes: a temporary name would make the same object
+    give different bytes each time."""
+    import torch  # here: writers of frame stores and exports do not need it
+
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    write_bytes(path, buffer.getvalue())
 
 
 @contextmanager

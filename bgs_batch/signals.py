@@ -28,12 +28,31 @@ def signal_handlers(signums: tuple[int, ...], handler: Callable[[int, object], N
             signal.signal(s, old)
 
 
+class Interruption:
+    """The signal that arrived inside `interruptible`, if any."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def check(self) -> None:
+        """Raise `Interrupted` if a signal arrived: Python runs a signal handler wherever the
+        main thread is, also inside a weakref callback or a destructor, which swallow what it
+        raises ("Exception ignored in ..."), so long loops call this once per item and before
+        they commit their output."""
+        if self.signum is not None:
+            raise Interrupted(self.signum)
+
+
 @contextmanager
-def interruptible(signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[None]:
-    """Within the block, SIGINT/SIGTERM raise `Interrupted` in the main thread."""
+def interruptible(signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)
+                  ) -> Iterator[Interruption]:  # fmt: skip
+    """Within the block, SIGINT/SIGTERM raise `Interrupted` in the main thread, and the yielded
+    `Interruption` remembers them (`Interruption.check`)."""
+    interruption = Interruption()
 
     def _raise(signum: int, _frame: object) -> None:
+        interruption.signum = signum
         raise Interrupted(signum)
 
     with signal_handlers(signums, _raise):
-        yield
+        yield interruption

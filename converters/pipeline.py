@@ -91,14 +91,15 @@ def write_store(
     the store's provenance when `skip_bad_frames` is set. Ctrl-C / SIGTERM abort cleanly.
     """
     keep_frame_buffers_in_heap()
-    with interruptible():
+    with interruptible() as interruption:
         try:
-            return _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progress)
+            return _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progress,
+                          interruption)  # fmt: skip
         finally:  # a signal can land between the temp file's creation and the writer's `with`
             temp_path(out).unlink(missing_ok=True)
 
 
-def _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progress):
+def _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progress, interruption):
     start = time.perf_counter()
     skipped: list[dict[str, str]] = []
 
@@ -114,6 +115,7 @@ def _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progre
         pending: deque[tuple[SourceFrame, Future[EncodedFrame]]] = deque()
 
         def drain_one() -> None:
+            interruption.check()
             frame, future = pending.popleft()
             try:
                 writer.append(future.result(), frame.name)
@@ -140,6 +142,7 @@ def _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progre
             raise InputError(f"every frame was bad; nothing written to {out}")
         if skipped:
             writer.meta = replace(meta, provenance={**meta.provenance, "skipped_frames": skipped})
+        interruption.check()  # the last chance before the store is committed
         path = writer.finish()
     return ConversionReport(path, frames=len(writer), seconds=time.perf_counter() - start,
                             skipped=skipped)  # fmt: skip

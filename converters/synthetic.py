@@ -607,14 +607,16 @@ def synthesize(
     out_dir = Path(out_dir)
     _check_replaceable(out_dir, overwrite)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    with interruptible(), atomic_dir(out_dir) as tmp:
-        _write_sequence(tmp, config, progress)
+    with interruptible() as interruption, atomic_dir(out_dir) as tmp:
+        _write_sequence(tmp, config, progress, interruption.check)
         _check_replaceable(out_dir, overwrite)  # again: it may have appeared while rendering
+        interruption.check()  # the last chance before the folder is committed
     return out_dir
 
 
 def _write_sequence(
-    root: Path, config: SynthConfig, progress: Callable[[int, int], None] | None
+    root: Path, config: SynthConfig, progress: Callable[[int, int], None] | None,
+    check_interrupted: Callable[[], None] = lambda: None,
 ) -> None:
     """Render every frame into root and write the TUM list, ground-truth and calibration files."""
     (root / "rgb").mkdir()
@@ -625,6 +627,7 @@ def _write_sequence(
     rows, instants = sensor_timing(config)
     rgb_lines, depth_lines, gt_lines = [], [], []
     for i, pose in enumerate(poses):
+        check_interrupted()
         depth_pose = pose if rows is None else path(i + rows)
         exposure = [depth_pose if t == 0 else path(i + t + (0 if rows is None else rows))
                     for t in instants]  # fmt: skip

@@ -30,7 +30,7 @@ import numba
 import numpy as np
 import torch
 
-from bgs_batch.atomic import atomic_file, write_text
+from bgs_batch.atomic import atomic_file, save_torch, write_text
 from bgs_batch.config import Config, check_crop, for_store
 from bgs_batch.metrics import ate
 from bgs_batch.slam import Slam
@@ -134,8 +134,7 @@ def _run(
                 if stop.requested and done < n:
                     raise Preempted(stop.requested, done, job_dir)
         slam.finish(store.__getitem__)
-        with atomic_file(job_dir / "sensor_net.pt") as tmp:
-            torch.save(slam.sensor.state_dict(), tmp)
+        save_torch(slam.sensor.state_dict(), job_dir / "sensor_net.pt")
         timestamps = store.timestamps[:n]
         poses = np.stack(slam.poses)
         gt = store.poses_gt[:n] if store.has_gt else None

@@ -90,3 +90,14 @@ def test_the_data_is_flushed_before_the_rename_and_the_folder_after_it(tmp_path,
     assert ("fsync", "map.ply") in events
     assert kinds.index("replace") > events.index(("fsync", "map.ply"))
     assert events[-1] == ("fsync", tmp_path.name)
+
+
+def test_the_same_torch_object_gives_the_same_bytes_under_any_name(tmp_path):
+    import torch
+
+    state = {"weight": torch.arange(6.0).reshape(2, 3), "step": torch.tensor(7)}
+    atomic.save_torch(state, tmp_path / "a.pt")
+    atomic.save_torch(state, tmp_path / "sensor_net.pt")
+    assert (tmp_path / "a.pt").read_bytes() == (tmp_path / "sensor_net.pt").read_bytes()
+    loaded = torch.load(tmp_path / "a.pt", weights_only=True)
+    assert torch.equal(loaded["weight"], state["weight"]) and _debris(tmp_path) == []

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from bgs_batch.atomic import atomic_file
+from bgs_batch.atomic import save_torch
 from bgs_batch.config import Config
 from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.frames import Level, camera_for, crop_and_clip, downsample, to_level
@@ -205,9 +205,8 @@ class Slam:
         path = self.submap_dir / f"{index:06d}.pt"
         path.parent.mkdir(parents=True, exist_ok=True)
         keyframes = [k.frame for k in self.active_keyframes]
-        with atomic_file(path) as tmp:
-            torch.save({"params": self.gmap.state_dict(), "keyframes": torch.tensor(keyframes),
-                        "first_frame": self.submap_first_frame}, tmp)  # fmt: skip
+        save_torch({"params": self.gmap.state_dict(), "keyframes": torch.tensor(keyframes),
+                    "first_frame": self.submap_first_frame}, path)  # fmt: skip
         self.submaps.append(SubmapRecord(index, str(path), self.submap_first_frame,
                                          last_frame, keyframes, len(self.gmap)))  # fmt: skip
         self.gmap = GaussianMap()

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bgs_batch.atomic import atomic_file
+from bgs_batch.atomic import save_torch
 from bgs_batch.geometry import matrix_to_quat_xyzw
 from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY
 
@@ -67,8 +67,7 @@ def write_correction(path: str | Path, correction: np.ndarray) -> None:
     data[RAW_KEY] = raw
     data["params"] = transform_params(raw, correction)
     data[CORRECTION_KEY] = torch.from_numpy(np.array(correction, np.float64))
-    with atomic_file(path) as tmp:
-        torch.save(data, tmp)
+    save_torch(data, path)
 
 
 def load_mapped(path: str | Path) -> dict[str, torch.Tensor]:
@@ -85,8 +84,7 @@ def write_uncertainty(path: str | Path, logits: torch.Tensor) -> None:
     data = torch.load(path, weights_only=True)
     data[RAW_KEY] = data.get(RAW_KEY, data["params"])
     data["params"] = {**data["params"], UNCERTAINTY_KEY: logits.clone()}
-    with atomic_file(path) as tmp:
-        torch.save(data, tmp)
+    save_torch(data, path)
 
 
 def camera_shift(delta: np.ndarray, c2w: np.ndarray) -> float:
