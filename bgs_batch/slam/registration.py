@@ -93,7 +93,7 @@ def register(source: View, target: View, cfg: RegistrationConfig,
         pyramid.append((pyramid[-1][0].halved(), pyramid[-1][1].halved()))
     transform = torch.eye(4, dtype=torch.float64) if initial is None else initial.clone()
     steps = 0
-    for level_source, level_target in reversed(pyramid):
+    for level_source, level_target in reversed(pyramid):  # the finest last: `fit` reuses it
         problem = _Problem(level_source, level_target, cfg)
         scales = None
         for _ in range(cfg.iterations):
@@ -104,7 +104,7 @@ def register(source: View, target: View, cfg: RegistrationConfig,
             steps += 1
             if float(step.norm()) < cfg.converged:
                 break
-    fitness, rmse = _Problem(source, target, cfg).fit(transform)
+    fitness, rmse = problem.fit(transform)
     return Registration(transform, fitness, rmse, steps)
 
 
