@@ -87,6 +87,11 @@ class TrackingConfig:
     # after a trusted warm start: this many iterations at tracking resolution only (0: the
     # usual pyramid and budget)
     warm_iterations: int = 0
+    # how the pose descends the loss: "adam" (the paper's and LoopSplat's Adam at trans_lr /
+    # rot_lr, with early stopping) or "gauss_newton" (trust-region steps from the renderer's
+    # exact gradient and the image-motion normal matrix, `slam.pose_jacobian`)
+    optimizer: Literal["adam", "gauss_newton"] = "adam"
+    gn_converged: float = 1e-4  # stop once a step's |ξ| (m and rad) is this small
 
 
 @dataclass

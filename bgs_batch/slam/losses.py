@@ -116,14 +116,17 @@ def tracking_loss(
     Per term the two differ by the constant factor λ^{3/2}/w; the optimum is the same when
     λ_c = λ_d and w = 0.5. Pass variances whose sensor part is detached (the network is frozen).
     """
-    if cfg.loss_form == "paper":
-        weights = (cfg.lambda_color, cfg.lambda_depth)
-    else:
-        w = cfg.authors_color_weight
-        weights = (w / cfg.lambda_color**0.5, (1 - w) / cfg.lambda_depth**0.5)
     # α³: LoopSplat's soft mask (not detached)
     return weighted_normalised_l1(color, depth, alpha, target_color, target_depth, var_color,
-                                  var_depth, weights)  # fmt: skip
+                                  var_depth, tracking_weights(cfg))  # fmt: skip
+
+
+def tracking_weights(cfg: TrackingConfig) -> tuple[float, float]:
+    """The factors (w_C, w_D) of `tracking_loss`'s two sums for its ``loss_form``."""
+    if cfg.loss_form == "paper":
+        return cfg.lambda_color, cfg.lambda_depth
+    w = cfg.authors_color_weight
+    return w / cfg.lambda_color**0.5, (1 - w) / cfg.lambda_depth**0.5
 
 
 def surprise_scores(

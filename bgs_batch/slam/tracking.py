@@ -31,11 +31,21 @@ from bgs_batch.render import Gaussians, RasterOutput, render, se3_exp, shape_mat
 from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.frames import Level, block_mean, downsample
 from bgs_batch.slam.gaussian_map import GaussianMap
-from bgs_batch.slam.losses import predictive_variances, surprise_scores, tracking_loss
+from bgs_batch.slam.losses import (
+    predictive_variances,
+    surprise_scores,
+    tracking_loss,
+    tracking_weights,
+)
+from bgs_batch.slam.pose_jacobian import image_motion_jacobians, l1_normal_matrix
 from bgs_batch.slam.registration import View, register
 
 Variances = tuple[torch.Tensor, torch.Tensor]  # sensor colour [H,W,1], sensor depth [H,W,1]
 Images = tuple[torch.Tensor, ...]  # colour, depth, Σ_C, Σ_D of one render
+# Gauss-Newton's trust scale: ×2 when a step's decrease exceeds this share of the predicted
+# one, ÷2 below the poor share, ÷4 when the loss rose (the usual trust-region thresholds)
+TRUST_GROW, TRUST_GOOD, TRUST_POOR = 2.0, 0.75, 0.25
+NORMAL_FLOOR = 1e-9  # of the normal matrix's trace: keeps a degenerate system solvable
 
 
 @dataclass(frozen=True)
@@ -120,10 +130,10 @@ class Tracker:
             start = None
             if self.cfg.tracking.warm_start:
                 w2c, start = self.warm_start(gaussians, shapes, frame, w2c)
+            t = self.cfg.tracking
             pivot = self.pivot(frame)
             threshold, doubled = self._doubling_threshold(), False
             schedule = list(zip(self.pyramid(frame), self.iteration_budget(), strict=True))
-            t = self.cfg.tracking
             if start is not None and start["start"] == "registration" and t.warm_iterations:
                 # a trusted start needs no coarse levels: refine at tracking resolution only
                 schedule = [(schedule[-1][0], t.warm_iterations)]
@@ -131,9 +141,15 @@ class Tracker:
                 variances = self._sensor_at(sensor_color, sensor_depth, factor)
                 lr_scale = t.level_lr_factor**depth
                 # the coarsest level tests its initial loss; finer levels inherit the doubling
-                w2c, loss, used, best, hard = self._optimise(
-                    gaussians, shapes, level, variances, w2c, pivot, budget * (1 + doubled),
-                    lr_scale, threshold if depth == 0 else math.inf)  # fmt: skip
+                double_above = threshold if depth == 0 else math.inf
+                if t.optimizer == "gauss_newton":
+                    w2c, loss, used, best, hard = self._gauss_newton(
+                        gaussians, shapes, level, variances, w2c, budget * (1 + doubled),
+                        double_above)  # fmt: skip
+                else:
+                    w2c, loss, used, best, hard = self._optimise(
+                        gaussians, shapes, level, variances, w2c, pivot, budget * (1 + doubled),
+                        lr_scale, double_above)  # fmt: skip
                 doubled = doubled or hard
                 if depth == 0 and self.cfg.tracking.init_err_ratio and math.isfinite(loss):
                     self.coarse_losses.append(loss)
@@ -248,3 +264,71 @@ class Tracker:
             loss.backward()
             optimizer.step()
         return best_w2c, best, used, best_images, doubled
+
+    def _gauss_newton(
+        self,
+        gaussians: Gaussians,
+        shapes: torch.Tensor,
+        level: Level,
+        variances: Variances,
+        w2c_start: torch.Tensor,
+        budget: int,
+        double_above: float = float("inf"),
+    ) -> tuple[torch.Tensor, float, int, Images | None, bool]:
+        """Gauss-Newton on the left twist from `w2c_start` at one pyramid level, with
+        `_optimise`'s returns. Each iteration renders once. A pose with a lower loss is kept and
+        gives the next step: the renderer's exact gradient against the image-motion normal
+        matrix (`pose_jacobian`) divided by a trust scale, which doubles when the loss fell as
+        the model predicted and halves when it fell much less; a pose with a higher loss is
+        dropped and the step from the best pose retried at a quarter of the scale. Stops once a
+        step is shorter than ``tracking.gn_converged``."""
+        t = self.cfg.tracking
+        best_w2c, best, used, doubled = w2c_start, float("inf"), 0, False
+        best_images: Images | None = None
+        w2c, scale, predicted = w2c_start, 1.0, 0.0
+        gradient = normal = None
+        while used < budget:
+            used += 1
+            twist = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+            out, var_c, var_d = self._render(gaussians, shapes, level, variances,
+                                             se3_exp(twist) @ w2c)  # fmt: skip
+            loss = tracking_loss(out.color, out.depth, out.alpha, level.rgb, level.depth,
+                                 var_c, var_d, t)  # fmt: skip
+            value = float(loss.detach())
+            if used == 1 and value > double_above:
+                budget, doubled = 2 * budget, True
+            if value < best:
+                if predicted > 0:  # how well the model predicted the decrease
+                    ratio = (best - value) / predicted
+                    if ratio > TRUST_GOOD:
+                        scale *= TRUST_GROW
+                    elif ratio < TRUST_POOR:
+                        scale /= TRUST_GROW
+                loss.backward()
+                gradient, normal = twist.grad, self._normal_matrix(out, level, var_c, var_d)
+                best, best_w2c = value, w2c
+                best_images = tuple(x.detach() for x in (out.color, out.depth, var_c, var_d))
+            else:
+                scale /= TRUST_GROW**2
+            if gradient is None or not float(torch.trace(normal)) > 0:
+                break  # no finite loss yet, or nothing in view to move
+            model = normal / scale
+            model = model + NORMAL_FLOOR * torch.trace(model) * torch.eye(6, dtype=torch.float64)
+            step = -torch.linalg.solve(model, gradient)
+            predicted = -float(gradient @ step + 0.5 * step @ model @ step)
+            if float(step.norm()) < t.gn_converged:
+                break
+            w2c = se3_exp(step) @ best_w2c
+        return best_w2c, best, used, best_images, doubled
+
+    def _normal_matrix(self, out: RasterOutput, level: Level, var_c: torch.Tensor,
+                       var_d: torch.Tensor) -> torch.Tensor:  # fmt: skip
+        """The reweighted least-squares normal matrix (6, 6) of `tracking_loss` at a render."""
+        j_color, j_depth, surface = image_motion_jacobians(out, level.camera)
+        w_color, w_depth = tracking_weights(self.cfg.tracking)
+        alpha = out.alpha.detach().to(torch.float64)
+        mask = ((level.depth > 0) & surface[..., None]) * alpha**3
+        color = l1_normal_matrix(out.color - level.rgb, w_color * mask / var_c.sqrt(), j_color)
+        depth = l1_normal_matrix(out.depth - level.depth, w_depth * mask / var_d.sqrt(),
+                                 j_depth[..., None, :])  # fmt: skip
+        return color + depth

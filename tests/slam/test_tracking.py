@@ -78,3 +78,36 @@ def test_tracking_with_the_warm_start_ends_at_the_true_pose(mapped):
     degrees, metres = _error(result.w2c, true_w2c)
     assert result.start["start"] == "registration"
     assert degrees < 0.15 and metres < 0.01, (degrees, metres)
+
+
+def test_gauss_newton_refines_an_offset_start_in_few_iterations(mapped):
+    slam, full, sensor, true_w2c = mapped
+    gaussians = slam.gmap.gaussians()
+    shapes = shape_matrices(gaussians.log_scales, gaussians.quats)
+    cfg = load_config("cpu", BASE + ["tracking.optimizer=gauss_newton"])
+    tracker = Tracker(cfg)
+    with torch.no_grad():  # where the registration lands from the true pose
+        optimum, _ = tracker.warm_start(gaussians, shapes, full, true_w2c)
+    level = tracker.pyramid(full)[-1][1]
+    variances = tracker._sensor_at(*sensor, cfg.tracking.downscale)
+    start = _off(optimum, 0.5, 0.005)  # what a warm start leaves at worst
+    for p in slam.gmap.params.values():
+        p.requires_grad_(False)
+    try:
+        w2c, loss, used, images, _ = tracker._gauss_newton(gaussians, shapes, level, variances,
+                                                           start, 20)  # fmt: skip
+        identity = torch.eye(4, dtype=torch.float64)  # no pivot
+        _, adam_loss, _, _, _ = tracker._optimise(gaussians, shapes, level, variances, start,
+                                                  identity, 20)  # fmt: skip
+        _, optimum_loss, _, _, _ = tracker._gauss_newton(gaussians, shapes, level, variances,
+                                                         optimum, 1)  # fmt: skip
+    finally:
+        for p in slam.gmap.params.values():
+            p.requires_grad_(True)
+    # converged: the loss within 0.1 % of the registration optimum's, the pose near it (the
+    # paper's loss and the registration's residuals need not share one minimum exactly)
+    assert used <= 12 and images is not None
+    assert loss < optimum_loss * 1.001, (loss, optimum_loss)
+    degrees, metres = _error(w2c, optimum)
+    assert degrees < 0.1 and metres < 3e-3, (degrees, metres)
+    assert loss < adam_loss, (loss, adam_loss)  # 20 of Adam's fixed-size steps end higher
