@@ -8,6 +8,7 @@ disagree, the field says which one it follows and the other is one override away
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -273,6 +274,152 @@ class Config:
         return dataclasses.asdict(self)
 
 
+@dataclass(frozen=True)
+class Range:
+    """The values a numeric setting accepts: finite, at least `low` (above it when
+    `low_open`), at most `high`."""
+
+    low: float = -math.inf
+    high: float = math.inf
+    low_open: bool = False
+
+    def admits(self, value: float) -> bool:
+        above = value > self.low if self.low_open else value >= self.low
+        return math.isfinite(value) and above and value <= self.high
+
+    def describe(self) -> str:
+        low = "" if self.low == -math.inf else f"{'>' if self.low_open else '>='} {self.low:g}"
+        high = "" if self.high == math.inf else f"<= {self.high:g}"
+        return "a finite number" + (f" {low}" if low else "") + (
+            f"{' and ' if low else ' '}{high}" if high else "")
+
+
+ANY = Range()
+COUNT = Range(1)  # iterations, sizes, factors: at least one
+NON_NEGATIVE = Range(0)  # 0 usually switches the thing off
+POSITIVE = Range(0, low_open=True)  # rates, distances, scales
+SHARE = Range(0, 1)  # fractions, probabilities, alphas
+ANGLE_DEG = Range(0, 180, low_open=True)
+# Every numeric setting and what it accepts; `check` refuses the rest before a run starts
+# (tests/test_config.py walks every field with NaN, inf, 0 and -1).
+RANGES: dict[str, Range] = {
+    "seed": Range(0, 2**32 - 1),
+    "threads": Range(1, 512),
+    "crop_edge": NON_NEGATIVE,  # and less than half the image (`check_crop`, per store)
+    "max_depth": POSITIVE,
+    "checkpoint_every": COUNT,
+    "uncertainty.initial_logit": ANY,
+    "uncertainty.map_floor": POSITIVE,
+    "uncertainty.unobserved_alpha": SHARE,
+    "uncertainty.unobserved_variance": POSITIVE,
+    "uncertainty.sensor_hidden": COUNT,
+    "uncertainty.sensor_min": POSITIVE,
+    "uncertainty.sensor_initial": NON_NEGATIVE,
+    "uncertainty.sensor_lr": POSITIVE,
+    "uncertainty.sensor_downscale": COUNT,
+    "uncertainty.refine_passes": NON_NEGATIVE,
+    "uncertainty.refine_lr": POSITIVE,
+    "tracking.iterations": COUNT,
+    "tracking.rot_lr": POSITIVE,
+    "tracking.trans_lr": POSITIVE,
+    "tracking.lambda_color": POSITIVE,
+    "tracking.lambda_depth": POSITIVE,
+    "tracking.authors_color_weight": SHARE,
+    "tracking.downscale": COUNT,
+    "tracking.coarse_levels": Range(0, 6),
+    "tracking.coarse_fraction": SHARE,
+    "tracking.early_stop_rel": NON_NEGATIVE,
+    "tracking.early_stop_patience": NON_NEGATIVE,
+    "tracking.level_lr_factor": POSITIVE,
+    "tracking.init_err_ratio": NON_NEGATIVE,
+    "tracking.pivot_depth_ratio": NON_NEGATIVE,
+    "tracking.warm_iterations": NON_NEGATIVE,
+    "tracking.gn_converged": POSITIVE,
+    "registration.downscale": COUNT,
+    "registration.coarsest_width": Range(8),
+    "registration.iterations": COUNT,
+    "registration.converged": POSITIVE,
+    "registration.max_distance": POSITIVE,
+    "registration.min_alpha": SHARE,
+    "registration.min_fitness": SHARE,
+    "registration.max_shift": POSITIVE,
+    "registration.max_turn_deg": ANGLE_DEG,
+    "mapping.iterations": COUNT,
+    "mapping.new_submap_iterations": COUNT,
+    "mapping.current_frame_share": SHARE,
+    "mapping.gamma": NON_NEGATIVE,
+    "mapping.ssim_weight": SHARE,
+    "mapping.pruning_threshold": SHARE,
+    "mapping.downscale": COUNT,
+    "mapping.lr_means": POSITIVE,
+    "mapping.lr_colors": POSITIVE,
+    "mapping.lr_opacity": POSITIVE,
+    "mapping.lr_scales": POSITIVE,
+    "mapping.lr_rotations": POSITIVE,
+    "mapping.lr_uncertainty": POSITIVE,
+    "seeding.new_submap_points": COUNT,
+    "seeding.new_submap_gradient_points": NON_NEGATIVE,
+    "seeding.new_frame_points": NON_NEGATIVE,
+    "seeding.alpha_threshold": SHARE,
+    "seeding.depth_error_factor": POSITIVE,
+    "seeding.min_distance": NON_NEGATIVE,
+    "seeding.depth_push": Range(0.5, 2),
+    "seeding.initial_opacity": Range(0, 1, low_open=True),
+    "submaps.max_translation": POSITIVE,
+    "submaps.max_rotation_deg": ANGLE_DEG,
+    "submaps.every": COUNT,
+    "keyframes.threshold": ANY,  # K compares with a log-likelihood: any sign
+    "keyframes.max_gap": COUNT,
+    "loop_closure.min_submaps": NON_NEGATIVE,
+    "loop_closure.min_interval": NON_NEGATIVE,
+    "loop_closure.self_similarity": SHARE,
+    "loop_closure.max_candidates": COUNT,
+    "loop_closure.orb_features": COUNT,
+    "loop_closure.orb_patch": Range(3),
+    "loop_closure.orb_levels": COUNT,
+    "loop_closure.orb_scale": Range(1, low_open=True),
+    "loop_closure.orb_fast_threshold": COUNT,
+    "loop_closure.vocabulary_words": Range(2),
+    "loop_closure.vocabulary_iterations": COUNT,
+    "loop_closure.vocabulary_samples": COUNT,
+    "loop_closure.vocabulary_growth": Range(1, low_open=True),
+    "loop_closure.verify_pairs": COUNT,
+    "loop_closure.match_ratio": Range(0, 1, low_open=True),
+    "loop_closure.ransac_iterations": COUNT,
+    "loop_closure.ransac_threshold": POSITIVE,
+    "loop_closure.min_inliers": Range(3),
+    "loop_closure.min_inlier_ratio": SHARE,
+    "loop_closure.overlap_radius": POSITIVE,
+    "loop_closure.min_overlap": SHARE,
+    "loop_closure.viewpoints": COUNT,
+    "loop_closure.iterations": COUNT,
+    "loop_closure.rot_lr": POSITIVE,
+    "loop_closure.trans_lr": POSITIVE,
+    "loop_closure.downscale": COUNT,
+    "loop_closure.coarse_levels": Range(0, 6),
+    "loop_closure.coarse_fraction": SHARE,
+    "loop_closure.early_stop_rel": NON_NEGATIVE,
+    "loop_closure.early_stop_patience": NON_NEGATIVE,
+    "loop_closure.min_coverage": SHARE,
+    "loop_closure.inlier_depth": POSITIVE,
+    "loop_closure.min_depth_inliers": SHARE,
+    "loop_closure.max_disagreement_m": POSITIVE,
+    "loop_closure.max_disagreement_deg": ANGLE_DEG,
+    "loop_closure.icp_max_distance": POSITIVE,
+    "loop_closure.icp_iterations": COUNT,
+    "loop_closure.icp_min_fitness": SHARE,
+    "loop_closure.icp_max_rmse": POSITIVE,
+    "loop_closure.icp_normal_neighbours": Range(3),
+    "loop_closure.max_points": COUNT,
+    "loop_closure.max_correspondence_distance": POSITIVE,
+    "loop_closure.edge_prune_threshold": SHARE,
+    "loop_closure.preference_loop_closure": POSITIVE,
+    "loop_closure.information_prior": NON_NEGATIVE,
+    "loop_closure.inject_drift_deg": ANY,  # a test lever: either direction
+    "loop_closure.inject_drift_m": ANY,
+}
+
+
 PRESETS: dict[str, dict[str, Any]] = {
     # the paper's and the authors' settings: full resolution, 200 tracking / 100 mapping iterations
     "paper": {},
@@ -331,28 +478,18 @@ def load_config(preset: str = DEFAULT_PRESET, overrides: list[str] | None = None
 
 
 def check(config: Config) -> None:
-    """Refuse value combinations a run cannot start from, naming the keys to change."""
+    """Refuse values a run cannot start from, naming the key, the value and what is allowed:
+    every numeric setting against `RANGES`, then combinations."""
+    for key, value in _flatten(config.to_dict()).items():
+        bounds = RANGES.get(key)
+        if bounds is None or value is None or isinstance(value, bool | str):
+            continue
+        if not bounds.admits(value):
+            raise ConfigError(f"{key}={value} is out of range: it must be {bounds.describe()}")
     u = config.uncertainty
     if u.sensor_initial and u.sensor_initial <= u.sensor_min:
         raise ConfigError(f"uncertainty.sensor_initial={u.sensor_initial} must exceed "
                           f"uncertainty.sensor_min={u.sensor_min} (or be 0 for the default init)")
-    if u.refine_passes < 0 or u.refine_lr <= 0:
-        raise ConfigError(f"uncertainty.refine_passes={u.refine_passes} must be >= 0 (0: off) "
-                          f"and uncertainty.refine_lr={u.refine_lr} > 0")
-    if config.crop_edge is not None and config.crop_edge < 0:
-        raise ConfigError(f"crop_edge={config.crop_edge} must be >= 0 (or none: the store's)")
-    if config.tracking.pivot_depth_ratio < 0:
-        raise ConfigError(f"tracking.pivot_depth_ratio={config.tracking.pivot_depth_ratio} must "
-                          "be >= 0 (0: rotate about the camera centre, 1: about the median depth)")
-    r, t = config.registration, config.tracking
-    if r.downscale < 1 or r.coarsest_width < 8 or r.iterations < 1:
-        raise ConfigError(f"registration.downscale={r.downscale} must be >= 1, "
-                          f"registration.coarsest_width={r.coarsest_width} >= 8 and "
-                          f"registration.iterations={r.iterations} >= 1")
-    if not 0 <= r.min_fitness <= 1 or t.warm_iterations < 0:
-        raise ConfigError(f"registration.min_fitness={r.min_fitness} must be in [0, 1] and "
-                          f"tracking.warm_iterations={t.warm_iterations} >= 0 (0: the usual "
-                          "budget)")
 
 
 def for_store(config: Config, recommended_crop: int, store: str) -> tuple[Config, dict[str, str]]:

@@ -1,6 +1,16 @@
+import dataclasses
+import typing
+
 import pytest
 
-from bgs_batch.config import PRESETS, Config, ConfigError, config_from_dict, load_config
+from bgs_batch.config import (
+    PRESETS,
+    RANGES,
+    Config,
+    ConfigError,
+    config_from_dict,
+    load_config,
+)
 
 
 def test_paper_preset_is_the_papers_settings():
@@ -48,20 +58,63 @@ def test_unknown_preset():
         load_config("gpu")
 
 
-def test_refinement_settings_are_checked():
-    for bad in ("uncertainty.refine_passes=-1", "uncertainty.refine_lr=0"):
-        with pytest.raises(ConfigError, match="refine_passes"):
-            load_config("cpu", [bad])
+def _numeric_keys() -> list[tuple[str, type]]:
+    """Every int and float setting of `Config` (dotted key, type)."""
+
+    def walk(cls, prefix=""):
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            kind = hints[f.name]
+            if dataclasses.is_dataclass(kind):
+                yield from walk(kind, f"{prefix}{f.name}.")
+            else:
+                kind = next((k for k in typing.get_args(kind) if k is not type(None)), kind)
+                if kind in (int, float):
+                    yield f"{prefix}{f.name}", kind
+
+    return list(walk(Config))
 
 
-def test_a_pivot_behind_the_camera_is_refused():
-    with pytest.raises(ConfigError, match="pivot_depth_ratio=-0.5 must be >= 0"):
-        load_config("cpu", ["tracking.pivot_depth_ratio=-0.5"])
+def test_every_numeric_setting_states_its_range():
+    keys = {key for key, _ in _numeric_keys()}
+    assert keys == set(RANGES), (keys ^ set(RANGES))
+    for preset in PRESETS:  # and every preset lies within them
+        load_config(preset)
 
 
-@pytest.mark.parametrize("override", ["registration.downscale=0", "registration.coarsest_width=4",
-                                      "registration.iterations=0", "registration.min_fitness=1.5",
-                                      "tracking.warm_iterations=-1"])  # fmt: skip
-def test_warm_start_settings_are_checked(override):
-    with pytest.raises(ConfigError, match=override.split("=")[0].replace(".", r"\.")):
+@pytest.mark.parametrize(("key", "kind"), _numeric_keys())
+def test_nan_inf_zero_and_minus_one_are_refused_or_in_range(key, kind):
+    bounds = RANGES[key]
+    for text in ("nan", "inf", "-inf", "0", "-1"):
+        if kind is int and text in ("nan", "inf", "-inf"):
+            with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+                load_config("cpu", [f"{key}={text}"])  # not an integer
+            continue
+        value = kind(text)
+        if bounds.admits(value):
+            try:
+                load_config("cpu", [f"{key}={text}"])
+            except ConfigError as err:  # a combination rule may still refuse it, by name
+                assert key.split(".")[-1] in str(err)
+        else:
+            with pytest.raises(ConfigError, match=rf"{key.replace('.', r'.')}={text}.* out of "
+                                                  rf"range: it must be a finite number"):
+                load_config("cpu", [f"{key}={text}"])
+
+
+@pytest.mark.parametrize("override", ["tracking.iterations=-5", "checkpoint_every=0",
+                                      "keyframes.max_gap=-3", "tracking.lambda_color=-1",
+                                      "mapping.iterations=-1", "max_depth=nan", "mapping.gamma=nan",
+                                      "tracking.rot_lr=inf", "mapping.lr_means=-1",
+                                      "mapping.downscale=0", "seed=-1", "threads=0",
+                                      "registration.min_fitness=1.5"])  # fmt: skip
+def test_the_reported_nonsense_settings_are_refused(override):
+    with pytest.raises(ConfigError, match="out of range"):
         load_config("cpu", [override])
+
+
+def test_a_range_reads_as_english():
+    assert RANGES["tracking.iterations"].describe() == "a finite number >= 1"
+    assert RANGES["mapping.ssim_weight"].describe() == "a finite number >= 0 and <= 1"
+    assert RANGES["tracking.rot_lr"].describe() == "a finite number > 0"
+    assert RANGES["keyframes.threshold"].describe() == "a finite number"
