@@ -90,7 +90,9 @@ class TrackingConfig:
     warm_iterations: int = 0
     # how the pose descends the loss: "adam" (the paper's and LoopSplat's Adam at trans_lr /
     # rot_lr, with early stopping) or "gauss_newton" (trust-region steps from the renderer's
-    # exact gradient and the image-motion normal matrix, `slam.pose_jacobian`)
+    # exact gradient and the image-motion normal matrix, `slam.pose_jacobian`), used after a
+    # trusted warm start only: from a start far off (3° without one) it can settle centimetres
+    # away where Adam's fixed-size steps walk back, so such frames keep Adam
     optimizer: Literal["adam", "gauss_newton"] = "adam"
     gn_converged: float = 1e-4  # stop once a step's |ξ| (m and rad) is this small
 
@@ -435,6 +437,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         # tracking resolution only (docs/method.md §6; measured in docs/experiments.md)
         "tracking.warm_start": True,
         "tracking.warm_iterations": 20,
+        # and refined by Gauss-Newton steps on the paper's loss instead of Adam's fixed-size ones
+        "tracking.optimizer": "gauss_newton",
         "mapping.iterations": 40,
         "mapping.new_submap_iterations": 60,
         "mapping.downscale": 2,

@@ -79,11 +79,12 @@ def test_golden_real_tum_first_30_frames(tmp_path, pinned_cache):
 
 @pytest.mark.slow
 @needs_target
-def test_one_tracking_iteration_less_fails_the_synthetic_golden(tmp_path, pinned_cache,
-                                                                monkeypatch):  # fmt: skip
+def test_a_looser_tracking_convergence_fails_the_synthetic_golden(tmp_path, pinned_cache,
+                                                                  monkeypatch):  # fmt: skip
     monkeypatch.delenv(UPDATE_ENV, raising=False)
-    # the cpu preset refines a trusted warm start for `warm_iterations` (20)
-    record = run_pinned("synthetic", tmp_path, pinned_cache, ("tracking.warm_iterations=19",))
+    # the cpu preset's Gauss-Newton refinement stops at steps below 1e-4: stopping a step
+    # earlier moves poses by well under a millimetre, which the golden must still see
+    record = run_pinned("synthetic", tmp_path, pinned_cache, ("tracking.gn_converged=2e-4",))
     with pytest.raises(AssertionError, match="synthetic: trajectory moved"):
         check_golden("synthetic", record)
 

@@ -3,18 +3,22 @@
 The pose is a left perturbation of the initial world-to-camera matrix, ``w2c = exp(ξ) · w2c₀``
 with ξ = (ρ, φ), or ``P exp(ξ) P⁻¹ · w2c₀`` with P the shift to a point on the optical axis at
 ``tracking.pivot_depth_ratio`` × the median depth (the rotation turns the camera about that
-point), optimised by Adam (amsgrad, LoopSplat's rates) on the uncertainty-normalised
-L1 loss. The map, and the sensor network's variance (computed once per frame), are fixed. CPU
-levers: a coarse-to-fine image pyramid and early stopping once the loss stops improving. The
-lowest-loss pose of the finest level is kept, with its predictive-surprise scores (Eq. 9).
-Like LoopSplat, a frame that starts far worse than the frames before it (fast motion) gets
-twice the iterations (``tracking.init_err_ratio``).
+point), optimised on the uncertainty-normalised L1 loss by Adam (amsgrad, LoopSplat's rates;
+the paper's tracker) or, from a trusted warm start, by Gauss-Newton steps
+(``tracking.optimizer``; `_gauss_newton`): their first-order model holds within a few pixels,
+so a start far off keeps Adam's coarse-to-fine walk. The map, and the sensor network's
+variance (computed once per frame), are fixed. CPU levers: a coarse-to-fine image pyramid and
+early stopping once the loss stops improving. The lowest-loss pose of the finest level is
+kept, with its predictive-surprise scores (Eq. 9). Like LoopSplat, a frame that starts far
+worse than the frames before it (fast motion) gets twice the iterations
+(``tracking.init_err_ratio``).
 
 With ``tracking.warm_start`` the optimisation starts instead from the constant-velocity pose
 corrected by dense RGB-D registration of the measured frame to the map rendered there
 (`registration.register`); an untrusted registration (too little overlap, or a correction
-beyond ``registration.max_shift`` / ``max_turn_deg``) falls back to constant velocity. Either
-way the paper's loss has the final word: the start only decides where Adam begins.
+beyond ``registration.max_shift`` / ``max_turn_deg``) falls back to constant velocity, and a
+trusted one is used only where the paper's loss is lower there than at constant velocity.
+Either way the paper's loss has the final word: the start only decides where refinement begins.
 """
 
 from __future__ import annotations
@@ -127,22 +131,25 @@ class Tracker:
         shapes = shape_matrices(gaussians.log_scales, gaussians.quats)  # the map stays fixed
         try:
             w2c, loss, iterations = w2c_init.to(torch.float64), float("inf"), 0
-            start = None
-            if self.cfg.tracking.warm_start:
-                w2c, start = self.warm_start(gaussians, shapes, frame, w2c)
             t = self.cfg.tracking
+            schedule = list(zip(self.pyramid(frame), self.iteration_budget(), strict=True))
+            start = None
+            if t.warm_start:
+                finest = schedule[-1][0]
+                variances = self._sensor_at(sensor_color, sensor_depth, finest[0])
+                w2c, start = self.warm_start(gaussians, shapes, frame, w2c, finest[1], variances)
             pivot = self.pivot(frame)
             threshold, doubled = self._doubling_threshold(), False
-            schedule = list(zip(self.pyramid(frame), self.iteration_budget(), strict=True))
-            if start is not None and start["start"] == "registration" and t.warm_iterations:
-                # a trusted start needs no coarse levels: refine at tracking resolution only
+            if start is not None and start["trusted"] and t.warm_iterations:
+                # the registration agreed with constant velocity within bounds, so whichever
+                # start the loss chose is close: refine at tracking resolution only
                 schedule = [(schedule[-1][0], t.warm_iterations)]
             for depth, ((factor, level), budget) in enumerate(schedule):
                 variances = self._sensor_at(sensor_color, sensor_depth, factor)
                 lr_scale = t.level_lr_factor**depth
                 # the coarsest level tests its initial loss; finer levels inherit the doubling
                 double_above = threshold if depth == 0 else math.inf
-                if t.optimizer == "gauss_newton":
+                if t.optimizer == "gauss_newton" and start is not None and start["trusted"]:
                     w2c, loss, used, best, hard = self._gauss_newton(
                         gaussians, shapes, level, variances, w2c, budget * (1 + doubled),
                         double_above)  # fmt: skip
@@ -166,30 +173,53 @@ class Tracker:
         return TrackResult(w2c, loss, iterations, *scores, doubled, start)
 
     def warm_start(self, gaussians: Gaussians, shapes: torch.Tensor, frame: Level,
-                   w2c: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:  # fmt: skip
+                   w2c: torch.Tensor, level: Level | None = None,
+                   variances: Variances | None = None
+                   ) -> tuple[torch.Tensor, dict[str, Any]]:  # fmt: skip
         """The registered start near `w2c` (constant velocity) and a report of it: which start
-        was used, the registration's fitness and RMS, and how far it moved the pose."""
+        was used, the registration's fitness and RMS, and how far it moved the pose.
+
+        A registration is trusted when it found enough of the map and moved the pose within
+        bounds; given the tracking `level` and its sensor `variances`, a trusted start must also
+        lower the paper's loss below the constant-velocity pose's (one render each), since a
+        sparse map can offer the registration a wrong basin that the loss sees through."""
         r = self.cfg.registration
-        level = downsample(frame, self.cfg.tracking.downscale * r.downscale)
+        coarse = downsample(frame, self.cfg.tracking.downscale * r.downscale)
         with torch.no_grad():
-            out = render(gaussians, w2c.float(), level.camera, shapes=shapes)
+            out = render(gaussians, w2c.float(), coarse.camera, shapes=shapes)
         alpha = out.alpha.to(torch.float64)
         covered = alpha >= r.min_alpha
         depth = torch.where(covered, out.depth / alpha.clamp_min(r.min_alpha), 0.0)
         color = out.color / alpha.clamp_min(r.min_alpha)
-        target = View.of(color, depth, level.camera)
-        result = register(View.of(level.rgb, level.depth, level.camera), target, r)
+        target = View.of(color, depth, coarse.camera)
+        result = register(View.of(coarse.rgb, coarse.depth, coarse.camera), target, r)
         moved_m = float(result.transform[:3, 3].norm())
         cos = (torch.trace(result.transform[:3, :3]) - 1) / 2
         moved_deg = math.degrees(math.acos(float(cos.clamp(-1.0, 1.0))))
         trusted = (result.fitness >= r.min_fitness and moved_m <= r.max_shift
                    and moved_deg <= r.max_turn_deg)  # fmt: skip
+        # x_target = T x_source and x_target = w2c x_world: the source's w2c is T⁻¹ w2c
+        registered = torch.linalg.inv(result.transform) @ w2c
         report = {"start": "registration" if trusted else "constant_velocity",
                   "fitness": result.fitness, "rmse": result.rmse,
                   "iterations": result.iterations, "moved_m": moved_m,
-                  "moved_deg": moved_deg}  # fmt: skip
-        # x_target = T x_source and x_target = w2c x_world: the source's w2c is T⁻¹ w2c
-        return (torch.linalg.inv(result.transform) @ w2c if trusted else w2c), report
+                  "moved_deg": moved_deg, "trusted": trusted}  # fmt: skip
+        use = trusted
+        if trusted and level is not None and variances is not None:
+            losses = [self._loss(gaussians, shapes, level, variances, pose)
+                      for pose in (w2c, registered)]  # fmt: skip
+            report["loss_ratio"] = losses[1] / losses[0] if losses[0] > 0 else 1.0
+            use = losses[1] < losses[0]
+            report["start"] = "registration" if use else "constant_velocity"
+        return (registered if use else w2c), report
+
+    def _loss(self, gaussians: Gaussians, shapes: torch.Tensor, level: Level,
+              variances: Variances, w2c: torch.Tensor) -> float:  # fmt: skip
+        """The tracking loss at `w2c` (no gradient)."""
+        with torch.no_grad():
+            out, var_c, var_d = self._render(gaussians, shapes, level, variances, w2c)
+            return float(tracking_loss(out.color, out.depth, out.alpha, level.rgb, level.depth,
+                                       var_c, var_d, self.cfg.tracking))  # fmt: skip
 
     def pivot(self, frame: Level) -> torch.Tensor:
         """The (4, 4) shift P of ``w2c = P exp(ξ) P⁻¹ w2c₀``: to the point on the optical axis

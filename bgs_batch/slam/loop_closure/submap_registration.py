@@ -91,12 +91,13 @@ class SubmapRegistration:
     def __init__(self, cfg: Config) -> None:
         self.cfg = cfg
         lc = cfg.loop_closure
+        # LoopSplat's rates and budget, which are Adam's (whatever tracking itself uses)
         tracking = dataclasses.replace(
             cfg.tracking, iterations=lc.iterations, rot_lr=lc.rot_lr, trans_lr=lc.trans_lr,
             downscale=lc.downscale, coarse_levels=lc.coarse_levels,
             coarse_fraction=lc.coarse_fraction, early_stop_rel=lc.early_stop_rel,
             early_stop_patience=lc.early_stop_patience, init_err_ratio=0.0,
-            warm_start=False)  # fmt: skip
+            warm_start=False, optimizer="adam")  # fmt: skip
         # keyframes are already at mapping resolution: their levels are the tracker's input
         mapping = dataclasses.replace(cfg.mapping, downscale=1)
         self.tracker = Tracker(dataclasses.replace(cfg, tracking=tracking, mapping=mapping))
