@@ -15,6 +15,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from converters.image_codec import ImageDecodeError, decode
+
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
@@ -43,10 +45,6 @@ IMREAD_COLOR_RGB: int | None = getattr(cv2, "IMREAD_COLOR_RGB", None)
 COMPRESSED_DEPTH = "compressedDepth"
 COMPRESSED_DEPTH_HEADER = struct.Struct("<iff")  # format, depthQuantA, depthQuantB
 INVERSE_DEPTH_FORMAT = 0
-
-
-class ImageDecodeError(ValueError):
-    """The message does not hold a decodable image of the expected kind."""
 
 
 def original_encoding(msgtype: str, msg: Any) -> str:
@@ -150,11 +148,8 @@ def _decode_compressed_depth(msg: Any) -> np.ndarray:
 
 
 def _imdecode(data: Any, flags: int, fmt: str) -> np.ndarray:
-    """Decode a JPEG/PNG held in any bytes-like object or uint8 array, without copying it."""
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
-    if image is None:
-        raise ImageDecodeError(f"corrupt or truncated {fmt or 'compressed'} image data")
-    return image
+    """Decode a whole JPEG/PNG held in any bytes-like object or uint8 array, without copying."""
+    return decode(data, flags, f"image ({fmt})" if fmt else "image")
 
 
 def _require_uint16(image: np.ndarray, fmt: str) -> np.ndarray:

@@ -21,6 +21,8 @@ import numpy as np
 from bgs_batch.errors import InputError
 from bgs_batch.geometry import matrix_to_quat_xyzw, pose_matrix
 from bgs_batch.store import StoreMeta
+from converters import image_codec
+from converters.image_codec import ImageDecodeError
 from converters.pipeline import SourceFrame
 from converters.sens import SensFrame, SensHeader, read_frame, read_sens_index
 
@@ -206,16 +208,16 @@ def _read_matrix(path: Path) -> np.ndarray:
 
 
 def _load_folder_frame(color: Path, depth: Path) -> tuple[np.ndarray, np.ndarray]:
-    bgr = cv2.imdecode(np.fromfile(color, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None:
+    try:
+        bgr = image_codec.read(color, cv2.IMREAD_COLOR, "colour image")
+        values = image_codec.read(depth, cv2.IMREAD_UNCHANGED, "depth image")
+    except ImageDecodeError as err:
+        raise InputError(f"{err}; restore it or pass --skip-bad-frames to drop the frame"
+                         ) from None  # fmt: skip
+    if values.dtype != np.uint16 or values.ndim != 2:
         raise InputError(
-            f"{color}: cannot be decoded (truncated or not a JPEG); restore it or "
-            "pass --skip-bad-frames to drop the frame"
-        )
-    values = cv2.imread(str(depth), cv2.IMREAD_UNCHANGED)
-    if values is None or values.dtype != np.uint16 or values.ndim != 2:
-        raise InputError(
-            f"{depth}: not a 16-bit single-channel PNG; restore it or pass "
+            f"{depth}: not a 16-bit single-channel PNG ({values.dtype} {values.shape}); restore "
+            "it or pass "
             "--skip-bad-frames to drop the frame"
         )
     return to_store_pair(bgr, values)

@@ -28,6 +28,8 @@ import cv2
 import numpy as np
 
 from bgs_batch.errors import InputError
+from converters import image_codec
+from converters.image_codec import ImageDecodeError
 
 SENS_VERSION = 4
 COLOR_CODECS = {0: "raw", 1: "png", 2: "jpeg"}
@@ -150,12 +152,11 @@ def read_frame(path: Path, header: SensHeader, frame: SensFrame) -> tuple[np.nda
             np.frombuffer(color, np.uint8).reshape(height, width, 3), cv2.COLOR_RGB2BGR
         )
     else:
-        bgr = cv2.imdecode(np.frombuffer(color, np.uint8), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise InputError(
-                f"{where}: corrupt {header.color_codec} colour image; pass "
-                "--skip-bad-frames to drop such frames"
-            )
+        try:
+            bgr = image_codec.decode(color, cv2.IMREAD_COLOR, f"{header.color_codec} colour image")
+        except ImageDecodeError as err:
+            raise InputError(f"{where}: {err}; pass --skip-bad-frames to drop such frames"
+                             ) from None  # fmt: skip
     try:
         raw = zlib.decompress(depth) if header.depth_codec == "zlib_ushort" else depth
     except zlib.error as err:

@@ -25,7 +25,9 @@ import numpy as np
 from bgs_batch.errors import InputError
 from bgs_batch.geometry import interpolate_poses
 from bgs_batch.store import StoreMeta
+from converters import image_codec
 from converters.association import associate, association_summary
+from converters.image_codec import ImageDecodeError
 from converters.pipeline import SourceFrame, write_store
 
 TUM_DEPTH_SCALE = 5000.0
@@ -196,12 +198,11 @@ class _Undistorter:
 
 
 def _read_image(path: Path, kind: str) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise InputError(
-            f"{path}: cannot be read as an image (missing, truncated or not a PNG); restore "
-            "it from the dataset or pass --skip-bad-frames to drop the frame"
-        )
+    try:
+        image = image_codec.read(path, cv2.IMREAD_UNCHANGED, f"{kind} image")
+    except ImageDecodeError as err:
+        raise InputError(f"{err}; restore it from the dataset or pass --skip-bad-frames to "
+                         "drop the frame") from None  # fmt: skip
     if kind == "rgb":
         if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in (3, 4):
             raise InputError(f"{path}: expected an 8-bit colour image, got {image.dtype} "

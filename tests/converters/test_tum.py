@@ -122,10 +122,29 @@ def test_unreadable_png(tum_folder, tmp_path, damage):
     victim = sorted((tum_folder / "depth").iterdir())[3]
     data = victim.read_bytes()
     victim.write_bytes(data[: len(data) // 2] if damage == "truncate" else b"not a png")
-    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, str(victim), "cannot be read")
+    reason = "truncated PNG" if damage == "truncate" else "corrupt or truncated"
+    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, str(victim), reason,
+                 "--skip-bad-frames")  # fmt: skip
     assert list(tmp_path.glob("s.h5*")) == []
     result = convert(tum_folder, tmp_path / "s.h5", "--skip-bad-frames")
     assert result.exit_code == 0 and "1 skipped" in result.output
+
+
+def test_a_truncated_jpeg_is_refused_not_stored_grey(tum_folder, tmp_path):
+    """OpenCV decodes half a JPEG into an image with grey rows; the converter must not."""
+    victims = sorted((tum_folder / "rgb").iterdir())
+    for victim in victims:  # a sequence with JPEG colour (the content decides, not the name)
+        image = cv2.imread(str(victim))
+        victim.write_bytes(cv2.imencode(".jpg", image)[1].tobytes())
+    data = victims[2].read_bytes()
+    victims[2].write_bytes(data[: len(data) // 2])
+    assert_fails(convert(tum_folder, tmp_path / "s.h5"), 3, str(victims[2]), "truncated JPEG",
+                 "--skip-bad-frames")  # fmt: skip
+    assert list(tmp_path.glob("s.h5*")) == []
+    result = convert(tum_folder, tmp_path / "s.h5", "--skip-bad-frames")
+    assert result.exit_code == 0 and "1 skipped" in result.output
+    skipped = FrameStore(tmp_path / "s.h5").provenance["skipped_frames"]
+    assert [s["frame"].split()[0] for s in skipped] == [f"rgb/{victims[2].name}"]
 
 
 def test_rgb_depth_size_mismatch(tum_folder, tmp_path):

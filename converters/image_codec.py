@@ -1,0 +1,52 @@
+"""Strict decoding of compressed images: a file that is not whole is an error, not data.
+
+OpenCV's ``imdecode`` fills the missing rows of a truncated JPEG with grey and returns it
+without complaint, so every converter decodes through `decode`, which first checks that the
+bytes end where their format says an image ends: a JPEG with its end-of-image marker (FF D9;
+inside the entropy-coded data an FF byte is always stuffed or a restart marker, so the marker
+can only end the image), a PNG with its IEND chunk.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+JPEG_START, JPEG_END = b"\xff\xd8", b"\xff\xd9"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC
+TRAILING_PADDING = b"\x00\r\n\t "  # bytes some writers append after the image
+
+
+class ImageDecodeError(ValueError):
+    """Image bytes that do not decode to a whole image."""
+
+
+def decode(data: Any, flags: int, what: str = "image") -> np.ndarray:
+    """Decode JPEG or PNG bytes (any bytes-like object or uint8 array, not copied) with OpenCV
+    `flags`; raises `ImageDecodeError` naming `what` when they are truncated or corrupt."""
+    buffer = np.frombuffer(data, np.uint8)
+    head = buffer[:8].tobytes()
+    tail = buffer[-64:].tobytes().rstrip(TRAILING_PADDING)
+    if head.startswith(JPEG_START) and not tail.endswith(JPEG_END):
+        raise ImageDecodeError(f"truncated JPEG {what}: it does not end with the end-of-image "
+                               "marker")  # fmt: skip
+    if head == PNG_SIGNATURE and not tail.endswith(PNG_END):
+        raise ImageDecodeError(f"truncated PNG {what}: it has no IEND chunk at its end")
+    image = cv2.imdecode(buffer, flags)
+    if image is None:
+        raise ImageDecodeError(f"corrupt or truncated {what} data")
+    return image
+
+
+def read(path: Any, flags: int, what: str = "image") -> np.ndarray:
+    """`decode` the file at `path`; raises `ImageDecodeError` naming the file when it cannot be
+    read or decoded."""
+    try:
+        return decode(np.fromfile(str(path), np.uint8), flags, what)
+    except OSError as err:
+        raise ImageDecodeError(f"{path}: cannot be read ({err.strerror or err})") from None
+    except ImageDecodeError as err:
+        raise ImageDecodeError(f"{path}: {err}") from None
