@@ -19,12 +19,26 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from bgs_batch.errors import naming
+
 TEMP_PREFIX = ".tmp-"
 
 
 def temp_name(path: Path, tag: str = "") -> Path:
     """A unique, hidden name beside `path`."""
     return path.with_name(f"{TEMP_PREFIX}{path.name}.{tag}{os.getpid()}.{uuid.uuid4().hex[:8]}")
+
+
+def remove_temporaries(folder: Path) -> list[Path]:
+    """Delete the temporaries a killed writer (``kill -9``, power cut) left in `folder`; only call
+    it while no other writer uses the folder (e.g. under the job's lock). Returns what went."""
+    found = sorted(Path(folder).glob(f"{TEMP_PREFIX}*")) if Path(folder).is_dir() else []
+    for path in found:
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+    return found
 
 
 def fsync_path(path: Path) -> None:
@@ -51,8 +65,9 @@ def atomic_file(path: Path) -> Iterator[Path]:
     tmp = temp_name(path)
     tmp.touch(exist_ok=False)
     try:
-        yield tmp
-        commit(tmp, path)
+        with naming(path):
+            yield tmp
+            commit(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -92,7 +107,8 @@ def atomic_dir(path: Path) -> Iterator[Path]:
     tmp = temp_name(path)
     tmp.mkdir()
     try:
-        yield tmp
+        with naming(path):
+            yield tmp
         for folder, _, files in os.walk(tmp):
             for name in files:
                 fsync_path(Path(folder, name))

@@ -1,8 +1,9 @@
 """The `bgs` command line: one Click group, thin commands over the library.
 
 Exit codes: 0 ok, 1 internal error, 2 usage error, 3 invalid input, 4 output exists,
-5 job directory busy or made for other inputs, 75 job stopped after a checkpoint,
-128+N interrupted by signal N (see `bgs_batch.errors`).
+5 job directory busy or made for other inputs, 6 the file system refused (full, read-only,
+permission), 75 job stopped after a checkpoint, 128+N interrupted by signal N (see
+`bgs_batch.errors`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from pathlib import Path
 import click
 
 from bgs_batch import __version__
-from bgs_batch.errors import BgsError
+from bgs_batch.errors import BgsError, file_system_error
 
 DEMO_FRAMES = 30  # `make demo` from a clean clone (set-up, JIT, run, export) in < 5 min on 2 cores
 
@@ -44,13 +45,22 @@ class ImageSize(click.ParamType):
 
 
 class BgsGroup(click.Group):
-    """Click group that reports library errors cleanly (message naming the file and the fix)."""
+    """Click group that reports library errors, and the file system's refusals, as one line
+    naming the file and the fix, with their exit codes (`bgs_batch.errors`); `-v` adds the
+    traceback."""
 
     def invoke(self, ctx: click.Context):  # noqa: ANN201 - Click's signature
         try:
             return super().invoke(ctx)
         except BgsError as err:
+            logging.getLogger("bgs").debug("details", exc_info=True)  # the traceback with -v
             raise _UserError(err) from err
+        except OSError as err:  # disk full, read-only, permission denied: the user's to fix
+            user_error = file_system_error(err)
+            if user_error is None:
+                raise
+            logging.getLogger("bgs").debug("details", exc_info=True)
+            raise _UserError(user_error) from err
 
 
 def _show_progress(ctx: click.Context) -> bool:
@@ -238,21 +248,37 @@ def convert_bag(ctx: click.Context, path: Path, output: Path | None, **options) 
 @main.command()
 @click.argument("store", type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
-def inspect(store: Path, as_json: bool) -> None:
+@click.option("--verify", is_flag=True,
+              help="Only decode every chunk of every frame (threaded) and list each damaged "
+                   "frame, instead of stopping at the first.")
+@click.option("--workers", default=2, show_default=True, type=click.IntRange(min=1),
+              help="Decode threads of --verify.")
+def inspect(store: Path, as_json: bool, verify: bool, workers: int) -> None:
     """Validate a frame store and summarise it.
 
     Prints frames, resolution, duration, frame rate, depth validity, ground-truth coverage,
     intrinsics and the provenance of every conversion choice. Exits with code 3 when the store
-    is invalid.
+    is invalid or a frame does not decode (--verify lists them all).
 
     \b
     Example:
       bgs inspect fr1_rpy.h5
+      bgs inspect --verify fr1_rpy.h5
     """
+    from bgs_batch.errors import InputError
     from bgs_batch.store import FrameStore
     from bgs_batch.store_summary import print_summary, summarize
 
     with FrameStore(store) as opened:
+        if verify:
+            damaged = opened.damaged_frames(workers)
+            for index, problem in damaged:
+                click.echo(f"frame {index}: {problem}")
+            if damaged:
+                raise InputError(f"{store}: {len(damaged)} of {len(opened)} frames are damaged; "
+                                 "re-create the store with `bgs convert …`")  # fmt: skip
+            click.echo(f"{store}: all {len(opened)} frames decode")
+            return
         summary = summarize(opened)
     if as_json:
         click.echo(json.dumps(summary.as_dict(), indent=2))
@@ -468,7 +494,9 @@ def evaluate(ctx: click.Context, job: Path, no_report: bool, store: Path | None,
               help="Override one setting, e.g. --set tracking.iterations=100 (repeatable).")
 @click.option("--max-frames", type=click.IntRange(min=1), help="Process only the first N frames.")
 @click.option("--force", is_flag=True,
-              help="Reuse JOB_DIR although it was made for another store or other settings.")
+              help="Start the job over: move JOB_DIR's previous run aside whole (to "
+                   "JOB_DIR.replaced-<time>) and run from frame 0 with this store and these "
+                   "settings.")
 @click.option("--no-export", is_flag=True,
               help="Skip the default export at the end (PLY, trajectories, uncertainty images "
                    "of the keyframes, metrics.json, report.html; see `bgs export`).")
@@ -518,6 +546,8 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
 
 def _default_export(ctx: click.Context, job_dir: Path) -> None:
     """The end-of-run export, unless a complete one is newer than the run's summary."""
+    from bgs_batch.errors import Interrupted
+    from jobs.preemption import ExportStopped
     from outputs.export import RUN_DEFAULTS, export_is_current
 
     if export_is_current(job_dir):
@@ -525,6 +555,8 @@ def _default_export(ctx: click.Context, job_dir: Path) -> None:
         return
     try:
         _run_export(ctx, job_dir, RUN_DEFAULTS, brief=True)  # the store recorded in job.json
+    except Interrupted as err:  # e.g. Slurm's time-limit warning: exit 75 requeues the task
+        raise ExportStopped(err.signum, job_dir) from err
     except BgsError as err:
         err.args = (f"the run finished, but its export failed: {err}; fix this and run "
                     f"`bgs export {job_dir}` (or pass --no-export)",)  # fmt: skip
@@ -535,31 +567,47 @@ def _default_export(ctx: click.Context, job_dir: Path) -> None:
 @click.argument("jobs", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object per job.")
 def status(jobs: tuple[Path, ...], as_json: bool) -> None:
-    """Show the state of job directories: running, done, failed or new.
+    """Show the state of job directories: running, done, stopped, failed or new.
 
-    Also frames processed, keyframes, frames per second and the last error. Safe to call
-    while a job runs.
+    Also frames processed, keyframes, frames per second and the last error. "stopped" is a job
+    that checkpointed on a signal (exit 75): running it again resumes. Safe to call while a job
+    runs. Folders that are not job directories are listed after the others, and the exit code
+    is then 3.
 
     \b
     Example:
       bgs status jobs/*
     """
     from rich.console import Console
-    from rich.table import Table
+    from rich.table import Column, Table
 
+    from bgs_batch.errors import InputError
     from jobs.status import job_status
 
-    statuses = [job_status(job) for job in jobs]
+    statuses, problems = [], []
+    for job in jobs:
+        try:
+            statuses.append(job_status(job))
+        except InputError as err:
+            problems.append(err)
     if as_json:
         click.echo(json.dumps([s.as_dict() for s in statuses], indent=2))
-        return
-    table = Table("job", "state", "frames", "keyframes", "fps", "last error")
-    colours = {"running": "cyan", "done": "green", "failed": "red", "new": "white"}
-    for s in statuses:
-        fps = "-" if s.fps is None else f"{s.fps:.2f}"
-        table.add_row(s.job, f"[{colours[s.state]}]{s.state}[/]", str(s.frames_done),
-                      str(s.keyframes), fps, s.last_error or "")  # fmt: skip
-    Console().print(table)
+    else:
+        table = Table("job", Column("state", no_wrap=True), "frames", "keyframes", "fps",
+                      "last error")  # fmt: skip
+        colours = {"running": "cyan", "done": "green", "stopped": "yellow", "failed": "red",
+                   "new": "white"}  # fmt: skip
+        for s in statuses:
+            fps = "-" if s.fps is None else f"{s.fps:.2f}"
+            state = "stopped (resumable)" if s.state == "stopped" else s.state
+            table.add_row(s.job, f"[{colours[s.state]}]{state}[/]", str(s.frames_done),
+                          str(s.keyframes), fps, s.last_error or "")  # fmt: skip
+        if statuses:
+            Console().print(table)
+    for err in problems[:-1]:
+        click.echo(f"Error: {err}", err=True)
+    if problems:
+        raise problems[-1]
 
 
 @main.command()

@@ -55,6 +55,7 @@ REQUIRED_ATTRS = (
     "provenance",
 )
 TMP_SUFFIX = ".tmp"
+DECODE_ERRORS = (OSError, ValueError, isal_zlib.error)  # what a damaged chunk raises
 
 
 @dataclass(frozen=True)
@@ -430,6 +431,18 @@ class FrameStore:
         return raw.astype(np.float32) / np.float32(self.depth_scale)
 
     def _read(self, ds: h5py.Dataset, index: int) -> np.ndarray:
+        """One frame of `ds`; a chunk that does not decode (flipped bytes, a truncated copy) is
+        an `InputError` naming the store and the frame, never data."""
+        try:
+            return self._decode(ds, index)
+        except DECODE_ERRORS as err:
+            raise InputError(
+                f"{self.path}: frame {index} is damaged ({ds.name.lstrip('/')} chunk: {err}); "
+                f"re-create the store with `bgs convert …` (`bgs inspect --verify {self.path}` "
+                "lists every damaged frame)"
+            ) from err
+
+    def _decode(self, ds: h5py.Dataset, index: int) -> np.ndarray:
         if self._fast:
             mask, chunk = ds.id.read_direct_chunk((index,) + (0,) * (ds.ndim - 1))
             if mask == 0:  # every filter was applied: decode here, off h5py's global lock
@@ -438,6 +451,21 @@ class FrameStore:
                     return _unshuffle(raw, ds.dtype, ds.shape[1:])
                 return np.frombuffer(raw, ds.dtype).reshape(ds.shape[1:]).copy()
         return ds[index]
+
+    def damaged_frames(self, workers: int = READ_WORKERS) -> list[tuple[int, str]]:
+        """Decode every chunk of every frame (threaded: decompression releases the GIL) and
+        return (frame, problem) for each frame whose colour or depth does not decode."""
+
+        def check(index: int) -> tuple[int, str] | None:
+            for ds in (self._rgb, self._depth):
+                try:
+                    self._decode(ds, index)
+                except DECODE_ERRORS as err:
+                    return index, f"{ds.name.lstrip('/')} chunk: {err}"
+            return None
+
+        with ThreadPoolExecutor(workers) as pool:
+            return [found for found in pool.map(check, range(len(self))) if found is not None]
 
     def _frame(self, index: int, rgb: np.ndarray, depth: np.ndarray) -> Frame:
         pose = None

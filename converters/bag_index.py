@@ -45,8 +45,10 @@ log = logging.getLogger(__name__)
 ROS1_SUFFIX = ".bag"
 DB3_SUFFIX = ".db3"
 ROS2_SUFFIXES = (DB3_SUFFIX, MCAP_SUFFIX)
-# what reading a damaged bag raises: storage, deserialisation, header stamps
-BAG_ERRORS = (BagReadError, SerdeError, struct.error)
+# what reading a damaged bag raises: storage, deserialisation, header stamps, and what the
+# libraries' parsers raise on bytes that are no bag at all (a header that is not text, a length
+# that does not fit)
+BAG_ERRORS = (BagReadError, SerdeError, struct.error, ValueError, OverflowError, IndexError)
 
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"

@@ -1,4 +1,5 @@
-"""Strict decoding of compressed images: a file that is not whole is an error, not data.
+"""Strict decoding of compressed images (a file that is not whole is an error, not data), and
+PNG writing whose failures say why.
 
 OpenCV's ``imdecode`` fills the missing rows of a truncated JPEG with grey and returns it
 without complaint, so every converter decodes through `decode`, which first checks that the
@@ -9,10 +10,13 @@ can only end the image), a PNG with its IEND chunk.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+
+from bgs_batch.errors import naming
 
 JPEG_START, JPEG_END = b"\xff\xd8", b"\xff\xd9"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -50,3 +54,15 @@ def read(path: Any, flags: int, what: str = "image") -> np.ndarray:
         raise ImageDecodeError(f"{path}: cannot be read ({err.strerror or err})") from None
     except ImageDecodeError as err:
         raise ImageDecodeError(f"{path}: {err}") from None
+
+
+def write_png(path: Path, image: np.ndarray, compression: int | None = None) -> None:
+    """Write an image (BGR, grey or 16-bit) as PNG, with zlib level `compression` (default:
+    OpenCV's). Encoded in memory and written by Python, so a full or read-only disk raises an
+    `OSError` carrying its errno and path (``cv2.imwrite`` only returns False)."""
+    params = [] if compression is None else [cv2.IMWRITE_PNG_COMPRESSION, compression]
+    ok, data = cv2.imencode(".png", image, params)
+    if not ok:
+        raise ValueError(f"OpenCV cannot encode a {image.dtype} {image.shape} image as PNG")
+    with naming(path):
+        Path(path).write_bytes(data.tobytes())

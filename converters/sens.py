@@ -17,6 +17,7 @@ before anything is written and each frame can then be read on its own by a worke
 
 from __future__ import annotations
 
+import os
 import struct
 import zlib
 from collections.abc import Sequence
@@ -77,7 +78,7 @@ def read_sens_index(path: Path) -> tuple[SensHeader, list[SensFrame]]:
             frames = [_read_frame_record(fh, i, size) for i in range(header.frame_count)]
     except _Truncated as err:
         raise InputError(
-            f"{path} ends early ({err}); the file is truncated: download it again"
+            f"{path} is truncated or damaged ({err}): download it again"
         ) from None
     return header, frames
 
@@ -87,10 +88,11 @@ class _Truncated(Exception):
 
 
 def _read(fh: BinaryIO, size: int) -> bytes:
-    data = fh.read(size)
-    if len(data) != size:
-        raise _Truncated(f"{size} bytes wanted at offset {fh.tell() - len(data)}")
-    return data
+    """`size` bytes, or `_Truncated` when fewer are left (also for a garbage length)."""
+    left = os.fstat(fh.fileno()).st_size - fh.tell()
+    if size > left:
+        raise _Truncated(f"{size} bytes wanted at offset {fh.tell()}, {left} left")
+    return fh.read(size)
 
 
 def _read_header(fh: BinaryIO, path: Path) -> SensHeader:

@@ -31,6 +31,7 @@ from bgs_batch.atomic import atomic_dir
 from bgs_batch.errors import InputError, OutputExistsError
 from bgs_batch.geometry import matrix_to_quat_xyzw
 from bgs_batch.signals import interruptible
+from converters.image_codec import write_png
 
 # Independent random streams derived from the seed (the second entry of the generator key).
 _SCENE_STREAM, _PATH_STREAM, _SENSOR_STREAM, _SHAKE_STREAM = 0, 1, 2, 3
@@ -635,8 +636,8 @@ def _write_sequence(
         rgb, depth = renderer.render(exposure, depth_pose, rng)
         time = config.start_time + i / config.fps
         stamp, depth_stamp = f"{time:.6f}", f"{time + config.depth_delay:.6f}"
-        _imwrite(root / f"rgb/{stamp}.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        _imwrite(root / f"depth/{depth_stamp}.png", depth)
+        write_png(root / f"rgb/{stamp}.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        write_png(root / f"depth/{depth_stamp}.png", depth)
         rgb_lines.append(f"{stamp} rgb/{stamp}.png\n")
         depth_lines.append(f"{depth_stamp} depth/{depth_stamp}.png\n")
         values = np.r_[pose[:3, 3], matrix_to_quat_xyzw(pose[:3, :3])]
@@ -665,12 +666,6 @@ def sensor_timing(config: SynthConfig) -> tuple[np.ndarray | None, np.ndarray]:
     if config.exposure > 0:
         instants = np.linspace(-0.5, 0.5, config.exposure_samples) * config.exposure
     return rows, instants
-
-
-def _imwrite(path: Path, image: np.ndarray) -> None:
-    """Write a PNG, failing loudly (cv2.imwrite only returns False)."""
-    if not cv2.imwrite(str(path), image):
-        raise OSError(f"could not write {path}")
 
 
 def _check_replaceable(out_dir: Path, overwrite: bool) -> None:

@@ -113,8 +113,14 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if len(fields) != 8:
             raise InputError(f"{path}:{number}: expected 'timestamp tx ty tz qx qy qz qw'")
         row = [_parse_float(x, path, number) for x in fields]
+        if not np.all(np.isfinite(row)):
+            raise InputError(
+                f"{path}:{number}: {' '.join(fields)} holds a value that is not a finite "
+                "number; the file is corrupt: restore it from the dataset or delete it to "
+                "convert without GT"
+            )
         norm = np.linalg.norm(row[4:])
-        if not np.all(np.isfinite(row)) or abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
             raise InputError(
                 f"{path}:{number}: quaternion {fields[4:]} has norm {norm:.4f}, not 1; the file "
                 "is corrupt: restore it from the dataset or delete it to convert without GT"

@@ -2,18 +2,22 @@
 
 ``job.json`` records what the job computes (input store with its checksum, resolved config,
 package version); running again on the same directory with other inputs or settings is refused
-unless forced, so a resumed job can never silently mix two configurations. The lock file holds
-the owner's host and PID: a second ``bgs run`` on the same job refuses with a clear message,
-and a lock left by a dead process (same host, PID gone) is taken over.
+and ``--force`` moves the old run aside whole before starting over, so a job can never mix two
+runs. The lock file holds the owner's host and PID and the owner's flock: a second ``bgs run``
+on the same job refuses with a clear message, and a lock left by a dead process (same host,
+PID gone; or unreadable and not held) is taken over.
 """
 
 from __future__ import annotations
 
 import errno
+import fcntl
 import hashlib
+import itertools
 import json
 import os
 import socket
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -87,22 +91,59 @@ def _identity(record: dict[str, Any], name: str) -> Any:
     return value
 
 
-def check_or_write_record(job_dir: Path, record: dict[str, Any], force: bool) -> None:
+def check_or_write_record(job_dir: Path, record: dict[str, Any]) -> None:
     """Write ``job.json`` for a new job; for an existing one, refuse changed inputs or settings
-    (a store with the same checksum but a new modification time is the same input)."""
+    (a store with the same checksum but a new modification time is the same input).
+
+    A folder with other files but no readable ``job.json`` is refused too: resuming whatever
+    checkpoints it holds could splice another run into this one.
+    """
     path = job_dir / JOB_FILE
-    old = read_record(job_dir) if path.exists() else None
-    if old is not None and not force:
+    old = read_record(job_dir)
+    if old is None and path.exists():
+        raise JobError(f"{path} is unreadable, so {job_dir} cannot be resumed safely; pass "
+                       "--force to start the job over (the old files are moved aside)")  # fmt: skip
+    if old is None and any(p.name != LOCK_FILE for p in job_dir.iterdir()):
+        raise JobError(f"{job_dir} is not empty and has no {JOB_FILE}, so it is not a bgs job "
+                       "directory; choose a new or empty --job-dir")  # fmt: skip
+    if old is not None:
         changes = [name for name in IDENTITY if _identity(old, name) != _identity(record, name)]
         if changes:
             what = " and ".join(changes)
             raise JobError(
                 f"{job_dir} belongs to a job with a different {what} (see {path}); use another "
-                "--job-dir, or pass --force to restart this one with the new settings"
+                "--job-dir, or pass --force to start this one over with the new settings"
             )
         if old == record:
             return
     atomic.write_text(path, json.dumps(record, indent=2, sort_keys=True))
+
+
+def set_aside(job_dir: Path) -> Path | None:
+    """`--force`: move a previous run's job directory aside as a whole, under the job's lock,
+    and leave an empty one; returns where it went (None when there was no previous run).
+
+    One rename moves every file of the old run at once, so no crash can leave a mix of its
+    checkpoints, log or outputs behind for the new run to resume; the moved folder stays a
+    complete job directory (`bgs status`, `bgs export` still read it).
+    """
+    with job_lock(job_dir):
+        if not (job_dir / JOB_FILE).exists():
+            return None  # a new, empty or foreign folder: check_or_write_record decides
+        stem = f"{job_dir.name}.replaced-{time.strftime('%Y%m%dT%H%M%S')}"
+        target = next(job_dir.with_name(name) for name in _numbered(stem)
+                      if not job_dir.with_name(name).exists())  # fmt: skip
+        os.rename(job_dir, target)
+        job_dir.mkdir()
+    (target / LOCK_FILE).unlink(missing_ok=True)
+    return target
+
+
+def _numbered(stem: str) -> Iterator[str]:
+    """`stem`, then `stem-1`, `stem-2`, ...: free names for folders made in the same second."""
+    yield stem
+    for n in itertools.count(1):
+        yield f"{stem}-{n}"
 
 
 def _pid_alive(pid: int) -> bool:
@@ -113,49 +154,109 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
-def _read_owner(path: Path) -> dict[str, Any]:
+def _parse_owner(data: bytes) -> dict[str, Any] | None:
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
+        owner = json.loads(data)
+    except ValueError:
+        return None
+    return owner if isinstance(owner, dict) else None
 
 
-def _is_stale(owner: dict[str, Any]) -> bool:
-    """A lock is stale when it names a process on this host that no longer exists."""
+def _is_held(fd: int) -> bool:
+    """True when a process holds the lock file's flock (the owner does for its whole run; the
+    kernel drops it when that process dies). A shared lock works on read-only files and NFS."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    fcntl.flock(fd, fcntl.LOCK_UN)
+    return False
+
+
+def _live_owner(fd: int) -> dict[str, Any] | None:
+    """The owner named by an open lock file, or None when the lock is stale.
+
+    A readable lock names a host and PID: on this host the PID must exist, another host's lock
+    is trusted. An empty or garbage lock (not written by a current `bgs`, which writes it whole
+    before linking it into place) is stale when no process holds its flock.
+    """
+    owner = _parse_owner(os.pread(fd, 4096, 0))
+    if owner is None:
+        return {} if _is_held(fd) else None
     pid = owner.get("pid")
-    if owner.get("host") != socket.gethostname() or not isinstance(pid, int):
-        return False
-    return not _pid_alive(pid)
+    if owner.get("host") == socket.gethostname() and isinstance(pid, int) and not _pid_alive(pid):
+        return None
+    return owner
 
 
 def lock_owner_alive(job_dir: Path) -> bool:
     """True while the process holding the job's lock may still be running."""
-    path = job_dir / LOCK_FILE
-    return path.exists() and not _is_stale(_read_owner(path))
+    try:
+        fd = os.open(job_dir / LOCK_FILE, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    try:
+        return _live_owner(fd) is not None
+    finally:
+        os.close(fd)
+
+
+def _reclaim_or_owner(path: Path) -> dict[str, Any] | None:
+    """Remove a stale lock and return None, or return the live owner of the lock at `path`."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return None  # released meanwhile
+    try:
+        owner = _live_owner(fd)
+        if owner is not None:
+            return owner
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)  # another reclaimer may be here too
+        except BlockingIOError:
+            return {}
+        if os.stat(path).st_ino == os.fstat(fd).st_ino:  # not replaced since it was read
+            path.unlink(missing_ok=True)
+        return None
+    finally:
+        os.close(fd)
 
 
 @contextmanager
 def job_lock(job_dir: Path) -> Iterator[None]:
-    """Hold the job's lock for the duration of the block (atomic create; stale locks reclaimed)."""
+    """Hold the job's lock for the duration of the block.
+
+    The lock file is written whole (host and PID) under a temporary name and hard-linked into
+    place, which fails if a lock exists: readers never see an empty lock. Its flock is held
+    until the block ends, so a stale lock (dead PID on this host, or unreadable and not held)
+    is told apart from a live one and reclaimed.
+    """
     path = job_dir / LOCK_FILE
-    me = {"host": socket.gethostname(), "pid": os.getpid()}
-    while True:
-        try:
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            owner = _read_owner(path)
-            if _is_stale(owner):
-                path.unlink(missing_ok=True)  # its process is gone
-                continue
-            raise JobError(
-                f"{job_dir} is in use by process {owner.get('pid', '?')} on "
-                f"{owner.get('host', '?')}; wait for it to finish (bgs status {job_dir}), or "
-                f"delete {path} if that process is really gone"
-            ) from None
-        with os.fdopen(fd, "w") as fh:
-            json.dump(me, fh)
-        break
+    tmp = atomic.temp_name(path)
+    fd = os.open(tmp, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        os.write(fd, json.dumps({"host": socket.gethostname(), "pid": os.getpid()}).encode())
+        os.fsync(fd)
+        while True:
+            try:
+                os.link(tmp, path)
+                break
+            except FileExistsError:
+                owner = _reclaim_or_owner(path)
+                if owner is not None:
+                    raise JobError(
+                        f"{job_dir} is in use by process {owner.get('pid', '?')} on "
+                        f"{owner.get('host', '?')}; wait for it to finish (bgs status "
+                        f"{job_dir}), or delete {path} if that process is really gone"
+                    ) from None
+    except BaseException:
+        os.close(fd)
+        raise
+    finally:
+        tmp.unlink(missing_ok=True)
     try:
         yield
     finally:
         path.unlink(missing_ok=True)
+        os.close(fd)

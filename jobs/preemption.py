@@ -28,6 +28,19 @@ class Preempted(BgsError):
         )
 
 
+class ExportStopped(BgsError):
+    """A complete run's end-of-run export stopped on a signal (its partial files removed);
+    running the job again finishes the export, so this too is a resumable stop."""
+
+    exit_code = PREEMPTED_EXIT
+
+    def __init__(self, signum: int, job_dir: Path) -> None:
+        super().__init__(
+            f"the run is complete, but its export was stopped by {signal.Signals(signum).name} "
+            f"(partial output removed); `bgs run … --job-dir {job_dir}` finishes it"
+        )
+
+
 class StopRequest:
     """Set by a stop signal; the run loop checks it between frames."""
 

@@ -20,8 +20,10 @@ Job directory::
 from __future__ import annotations
 
 import json
+import logging
 import time
 from collections.abc import Callable
+from contextlib import suppress
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -30,13 +32,13 @@ import numba
 import numpy as np
 import torch
 
-from bgs_batch.atomic import atomic_file, save_torch, write_text
+from bgs_batch.atomic import atomic_file, remove_temporaries, save_torch, write_text
 from bgs_batch.config import Config, check_crop, for_store
 from bgs_batch.metrics import ate
 from bgs_batch.slam import Slam
 from bgs_batch.store import FrameStore
-from jobs.checkpoint import load_latest, write_checkpoint
-from jobs.jobdir import check_or_write_record, job_lock, job_record, read_record
+from jobs.checkpoint import CHECKPOINT_DIR, load_latest, write_checkpoint
+from jobs.jobdir import check_or_write_record, job_lock, job_record, read_record, set_aside
 from jobs.preemption import Preempted, stop_requests
 from outputs.trajectory import write_tum
 
@@ -59,8 +61,10 @@ class RunSummary:
 ERROR_FILE = "error.json"
 SUMMARY_FILE = "summary.json"
 LOG_FILE = "log.jsonl"
+SUBMAP_DIR = "submaps"
 TIMING_FIELDS = ("elapsed_s", "stage_s")
 """Event fields that measure time: the only ones that differ between runs of the same job."""
+log = logging.getLogger(__name__)
 TORCH_THREADS = 1  # torch only runs small per-pixel ops; its spinning OpenMP pool fights numba's
 
 
@@ -83,23 +87,29 @@ def run_job(
     """Run SLAM over the store (or its first `max_frames`) and write the job directory.
 
     Settings the config leaves to the store (``crop_edge`` None) take the store's value. Refuses
-    a job directory locked by a live process, or made for another store or settings (unless
-    `force`).
+    a job directory locked by a live process, or made for another store or settings. `force`
+    starts the job over: the previous run's directory is moved aside whole (`set_aside`) and
+    the run begins at frame 0, so its record, settings and outputs never mix with the new run's.
     """
     set_threads(cfg.threads)
     with FrameStore(store_path) as store:  # validated before the job directory is taken
         cfg, sources = for_store(cfg, store.crop_edge, store_path.name)
         check_crop(cfg.crop_edge, store.width, store.height)
         job_dir.mkdir(parents=True, exist_ok=True)
+        if force and (moved := set_aside(job_dir)) is not None:
+            log.warning("--force: moved the previous run of %s to %s", job_dir, moved)
         with job_lock(job_dir):
             record = job_record(store_path, cfg.to_dict(), max_frames, read_record(job_dir))
-            check_or_write_record(job_dir, record, force)
+            check_or_write_record(job_dir, record)
+            for folder in (CHECKPOINT_DIR, SUBMAP_DIR):  # what a `kill -9` left half-written
+                remove_temporaries(job_dir / folder)
             (job_dir / ERROR_FILE).unlink(missing_ok=True)
             try:
                 return _run(store, job_dir, cfg, sources, max_frames, on_frame)
             except BaseException as err:  # recorded for `bgs status`, then re-raised
                 error = {"type": type(err).__name__, "message": str(err)}
-                write_text(job_dir / ERROR_FILE, json.dumps(error))
+                with suppress(OSError):  # a full disk may refuse this too: keep the cause
+                    write_text(job_dir / ERROR_FILE, json.dumps(error))
                 raise
 
 
@@ -117,7 +127,7 @@ def _run(
     write_text(job_dir / "config.json", json.dumps(document, indent=2, sort_keys=True))
     with stop_requests() as stop:
         n = len(store) if max_frames is None else min(max_frames, len(store))
-        slam = Slam(cfg, store.intrinsics, job_dir / "submaps")
+        slam = Slam(cfg, store.intrinsics, job_dir / SUBMAP_DIR)
         done, previous_seconds = _resume(slam, store, job_dir)
         start = time.perf_counter() - previous_seconds
         with open(job_dir / LOG_FILE, "a", buffering=1) as log:  # line-buffered: status reads it

@@ -8,14 +8,15 @@ from pathlib import Path
 from typing import Any
 
 from bgs_batch.errors import InputError
-from jobs.jobdir import JOB_FILE, LOCK_FILE, lock_owner_alive
+from jobs.jobdir import JOB_FILE, lock_owner_alive
+from jobs.preemption import Preempted
 from jobs.run import ERROR_FILE, LOG_FILE, SUMMARY_FILE
 
 
 @dataclass(frozen=True)
 class JobStatus:
     job: str
-    state: str  # running | done | failed | new
+    state: str  # running | done | stopped (resumable) | failed | new
     frames_done: int
     fps: float | None
     keyframes: int
@@ -47,15 +48,17 @@ def job_status(job_dir: Path) -> JobStatus:
                          "start one with `bgs run STORE --job-dir DIR`")  # fmt: skip
     frames, keyframes, last = _last_event(job_dir / LOG_FILE)
     fps = frames / last["elapsed_s"] if last and last.get("elapsed_s") else None
-    error = None
+    error = info = None
     if (job_dir / ERROR_FILE).exists():
         info = json.loads((job_dir / ERROR_FILE).read_text())
         error = f"{info['type']}: {info['message']}"
-    if (job_dir / LOCK_FILE).exists() and lock_owner_alive(job_dir):
+    if lock_owner_alive(job_dir):
         state = "running"
     elif (job_dir / SUMMARY_FILE).exists() and error is None:
         state = "done"
         fps = json.loads((job_dir / SUMMARY_FILE).read_text())["fps"]
+    elif info is not None and info["type"] == Preempted.__name__:
+        state = "stopped"  # checkpointed on a signal (exit 75): running it again resumes
     elif error is not None or frames:
         state = "failed"
     else:

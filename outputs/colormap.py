@@ -3,7 +3,7 @@
 A `Scale` maps values to colours: linear or log10, clipped to its range (the end labels then read
 ``<=``/``>=``), NaN drawn grey. Images smaller than `MIN_HEIGHT` are enlarged by an integer
 factor (nearest neighbour, so pixels stay visible) to keep the labels legible. Output arrays are
-BGR uint8, as `cv2.imwrite` expects.
+BGR uint8, as OpenCV expects.
 """
 
 from __future__ import annotations
@@ -14,6 +14,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+from converters import image_codec
 
 MIN_HEIGHT = 240  # px; smaller images are enlarged by an integer factor
 BAR_WIDTH = 14  # px, the colour strip
@@ -152,6 +154,5 @@ def grid(tiles: list[list[np.ndarray]]) -> np.ndarray:
 
 
 def write_png(path: Path, bgr: np.ndarray) -> None:
-    """Write a BGR (or grey, or 16-bit) image as PNG; raises OSError when OpenCV cannot."""
-    if not cv2.imwrite(str(path), bgr, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]):
-        raise OSError(f"could not write {path}")
+    """Write a BGR (or grey, or 16-bit) image as PNG at the exports' compression level."""
+    image_codec.write_png(path, bgr, PNG_COMPRESSION)

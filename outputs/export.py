@@ -31,8 +31,11 @@ from typing import Any
 
 import numpy as np
 
-from bgs_batch.atomic import atomic_dir, atomic_file
+from bgs_batch.atomic import atomic_dir, atomic_file, remove_temporaries
 from bgs_batch.errors import InputError
+from bgs_batch.signals import interruptible
+from jobs.jobdir import job_lock
+from jobs.preemption import STOP_SIGNALS
 from outputs import plots
 from outputs.colormap import write_png
 from outputs.evaluate import (
@@ -200,14 +203,26 @@ def _check_inputs(job: FinishedJob, options: ExportOptions) -> None:
 def export_job(job_dir: Path, options: ExportOptions = ExportOptions(),
                progress: Callable[[int], None] | None = None) -> ExportReport:  # fmt: skip
     """Write the requested outputs of a finished job into ``job_dir/outputs``; `progress(1)` is
-    called after each rendered frame."""
+    called after each rendered frame.
+
+    Holds the job's lock, so no run or other export writes there meanwhile, and first removes
+    what a killed export left; SIGTERM, SIGUSR1 or Ctrl-C raise `Interrupted` and every
+    temporary file is removed on the way out.
+    """
     job = FinishedJob(job_dir, options.store)
     _check_inputs(job, options)
     lpips = None
     if options.metrics and options.lpips_weights:
         lpips = load_lpips(list(options.lpips_weights))
     report = ExportReport()
-    with ExitStack() as stack:
+    with job_lock(job.job_dir), interruptible(STOP_SIGNALS) as interruption, ExitStack() as stack:
+        remove_temporaries(job.outputs)  # of an export killed before it could clean up
+
+        def step(frames: int) -> None:  # a signal swallowed by a destructor still stops here
+            interruption.check()
+            if progress is not None:
+                progress(frames)
+
         renderer = None
         if options.uncertainty or options.renders or options.metrics:  # checks store, network
             store = stack.enter_context(job.open_store())
@@ -217,7 +232,7 @@ def export_job(job_dir: Path, options: ExportOptions = ExportOptions(),
         if options.trajectory:
             export_trajectories(job, report)
         if renderer is not None:
-            _export_frames(job, renderer, options, report, lpips, progress)
+            _export_frames(job, renderer, options, report, lpips, step)
     return report
 
 
@@ -282,7 +297,7 @@ def _export_frames(
     options: ExportOptions,
     report: ExportReport,
     lpips: Lpips | None,
-    progress: Callable[[int], None] | None,
+    progress: Callable[[int], None],
 ) -> None:
     """One pass over the frames feeding every per-frame output, then metrics and report."""
     image_frames, metric_frames = frames_to_render(job, options)
@@ -291,8 +306,7 @@ def _export_frames(
         sinks = _FrameSinks(job, options, stack, image_frames, metric_frames, lpips)
         for index in sorted(set(image_frames) | set(metric_frames)):
             sinks.add(renderer.frame(index))
-            if progress is not None:
-                progress(1)
+            progress(1)
         if options.metrics:
             trajectory = evaluate_trajectory(job)
             metrics = build_metrics(job, trajectory, sinks.evaluator, renderer.downscale,

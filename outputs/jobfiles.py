@@ -20,11 +20,10 @@ from bgs_batch.errors import InputError
 from bgs_batch.slam.gaussian_map import PARAMS
 from bgs_batch.store import FrameStore
 from jobs.jobdir import JOB_FILE, lock_owner_alive
-from jobs.run import LOG_FILE, SUMMARY_FILE
+from jobs.run import LOG_FILE, SUBMAP_DIR, SUMMARY_FILE
 from outputs.trajectory import match_timestamps, read_tum
 
 TRAJECTORY_FILE = "trajectory.txt"
-SUBMAP_DIR = "submaps"
 SENSOR_FILE = "sensor_net.pt"
 CONFIG_FILE = "config.json"
 OUTPUT_DIR = "outputs"
