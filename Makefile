@@ -8,9 +8,12 @@ STAMP := $(VENV)/.installed
 system-deps:
 	@bash scripts/system-deps.sh
 
+# the numba kernels are compiled here, once, for this CPU (bgs_batch/warmup.py): a user's first
+# `bgs run` then tracks its first frame in seconds instead of after half a minute of JIT
 $(STAMP): setup.cfg pyproject.toml
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install --disable-pip-version-check -q -e '.[dev]'
+	$(PY) -m bgs_batch.warmup
 	@touch $(STAMP)
 
 install: system-deps $(STAMP)
