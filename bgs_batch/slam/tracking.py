@@ -53,6 +53,38 @@ NORMAL_FLOOR = 1e-9  # of the normal matrix's trace: keeps a degenerate system s
 
 
 @dataclass(frozen=True)
+class Objective:
+    """The tracking loss (Eq. 15-17) of one pyramid level against the fixed map: what both
+    optimisers and the warm start's choice evaluate at a pose."""
+
+    gaussians: Gaussians
+    shapes: torch.Tensor  # the fixed map's shape matrices (`shape_matrices`)
+    level: Level
+    variances: Variances  # the frozen network's, at this level
+    cfg: Config
+
+    def render(self, w2c: torch.Tensor) -> tuple[RasterOutput, torch.Tensor, torch.Tensor]:
+        """The render at `w2c` and its total predictive variances Σ_C, Σ_D (Eq. 10, 11)."""
+        u = self.cfg.uncertainty
+        out = render(self.gaussians, w2c.float(), self.level.camera, full_grad=u.full_grad,
+                     shapes=self.shapes)  # fmt: skip
+        return out, *predictive_variances(out, *self.variances, u)
+
+    def evaluate(self, w2c: torch.Tensor
+                 ) -> tuple[torch.Tensor, RasterOutput, torch.Tensor, torch.Tensor]:  # fmt: skip
+        """The loss at `w2c` (differentiable where `w2c` is) with the render and Σ_C, Σ_D."""
+        out, var_c, var_d = self.render(w2c)
+        loss = tracking_loss(out.color, out.depth, out.alpha, self.level.rgb, self.level.depth,
+                             var_c, var_d, self.cfg.tracking)  # fmt: skip
+        return loss, out, var_c, var_d
+
+    def loss(self, w2c: torch.Tensor) -> float:
+        """The loss at `w2c`, without a gradient."""
+        with torch.no_grad():
+            return float(self.evaluate(w2c)[0])
+
+
+@dataclass(frozen=True)
 class TrackResult:
     """The tracked pose and what was measured at it."""
 
@@ -131,13 +163,12 @@ class Tracker:
         shapes = shape_matrices(gaussians.log_scales, gaussians.quats)  # the map stays fixed
         try:
             w2c, loss, iterations = w2c_init.to(torch.float64), float("inf"), 0
-            t = self.cfg.tracking
+            t, sensor = self.cfg.tracking, (sensor_color, sensor_depth)
             schedule = list(zip(self.pyramid(frame), self.iteration_budget(), strict=True))
             start = None
             if t.warm_start:
-                finest = schedule[-1][0]
-                variances = self._sensor_at(sensor_color, sensor_depth, finest[0])
-                w2c, start = self.warm_start(gaussians, shapes, frame, w2c, finest[1], variances)
+                objective = self._objective(gaussians, shapes, schedule[-1][0], sensor)
+                w2c, start = self.warm_start(gaussians, shapes, frame, w2c, objective)
             pivot = self.pivot(frame)
             threshold, doubled = self._doubling_threshold(), False
             if start is not None and start["trusted"] and t.warm_iterations:
@@ -145,25 +176,24 @@ class Tracker:
                 # start the loss chose is close: refine at tracking resolution only
                 schedule = [(schedule[-1][0], t.warm_iterations)]
             for depth, ((factor, level), budget) in enumerate(schedule):
-                variances = self._sensor_at(sensor_color, sensor_depth, factor)
+                objective = self._objective(gaussians, shapes, (factor, level), sensor)
                 lr_scale = t.level_lr_factor**depth
                 # the coarsest level tests its initial loss; finer levels inherit the doubling
                 double_above = threshold if depth == 0 else math.inf
                 if t.optimizer == "gauss_newton" and start is not None and start["trusted"]:
                     w2c, loss, used, best, hard = self._gauss_newton(
-                        gaussians, shapes, level, variances, w2c, budget * (1 + doubled),
-                        double_above)  # fmt: skip
+                        objective, w2c, budget * (1 + doubled), double_above)  # fmt: skip
                 else:
                     w2c, loss, used, best, hard = self._optimise(
-                        gaussians, shapes, level, variances, w2c, pivot, budget * (1 + doubled),
-                        lr_scale, double_above)  # fmt: skip
+                        objective, w2c, pivot, budget * (1 + doubled), lr_scale,
+                        double_above)  # fmt: skip
                 doubled = doubled or hard
                 if depth == 0 and self.cfg.tracking.init_err_ratio and math.isfinite(loss):
                     self.coarse_losses.append(loss)
                 iterations += used
             if best is None:  # no finite loss at this level (or no iterations): render the pose
                 with torch.no_grad():
-                    out, var_c, var_d = self._render(gaussians, shapes, level, variances, w2c)
+                    out, var_c, var_d = objective.render(w2c)
                 best = (out.color, out.depth, var_c, var_d)
             color, depth_image, var_c, var_d = best  # the finest level's render at its best pose
             scores = surprise_scores(color, depth_image, level.rgb, level.depth, var_c, var_d)
@@ -173,16 +203,15 @@ class Tracker:
         return TrackResult(w2c, loss, iterations, *scores, doubled, start)
 
     def warm_start(self, gaussians: Gaussians, shapes: torch.Tensor, frame: Level,
-                   w2c: torch.Tensor, level: Level | None = None,
-                   variances: Variances | None = None
+                   w2c: torch.Tensor, objective: Objective | None = None
                    ) -> tuple[torch.Tensor, dict[str, Any]]:  # fmt: skip
         """The registered start near `w2c` (constant velocity) and a report of it: which start
         was used, the registration's fitness and RMS, and how far it moved the pose.
 
         A registration is trusted when it found enough of the map and moved the pose within
-        bounds; given the tracking `level` and its sensor `variances`, a trusted start must also
-        lower the paper's loss below the constant-velocity pose's (one render each), since a
-        sparse map can offer the registration a wrong basin that the loss sees through."""
+        bounds; given the tracking level's `objective`, a trusted start must also lower the
+        paper's loss below the constant-velocity pose's (one render each), since a sparse map
+        can offer the registration a wrong basin that the loss sees through."""
         r = self.cfg.registration
         coarse = downsample(frame, self.cfg.tracking.downscale * r.downscale)
         with torch.no_grad():
@@ -205,21 +234,12 @@ class Tracker:
                   "iterations": result.iterations, "moved_m": moved_m,
                   "moved_deg": moved_deg, "trusted": trusted}  # fmt: skip
         use = trusted
-        if trusted and level is not None and variances is not None:
-            losses = [self._loss(gaussians, shapes, level, variances, pose)
-                      for pose in (w2c, registered)]  # fmt: skip
+        if trusted and objective is not None:
+            losses = [objective.loss(pose) for pose in (w2c, registered)]
             report["loss_ratio"] = losses[1] / losses[0] if losses[0] > 0 else 1.0
             use = losses[1] < losses[0]
             report["start"] = "registration" if use else "constant_velocity"
         return (registered if use else w2c), report
-
-    def _loss(self, gaussians: Gaussians, shapes: torch.Tensor, level: Level,
-              variances: Variances, w2c: torch.Tensor) -> float:  # fmt: skip
-        """The tracking loss at `w2c` (no gradient)."""
-        with torch.no_grad():
-            out, var_c, var_d = self._render(gaussians, shapes, level, variances, w2c)
-            return float(tracking_loss(out.color, out.depth, out.alpha, level.rgb, level.depth,
-                                       var_c, var_d, self.cfg.tracking))  # fmt: skip
 
     def pivot(self, frame: Level) -> torch.Tensor:
         """The (4, 4) shift P of ``w2c = P exp(ξ) P⁻¹ w2c₀``: to the point on the optical axis
@@ -233,36 +253,31 @@ class Tracker:
                 pivot[2, 3] = ratio * float(valid.median())
         return pivot
 
+    def _objective(self, gaussians: Gaussians, shapes: torch.Tensor, scaled: tuple[int, Level],
+                   sensor: Variances) -> Objective:  # fmt: skip
+        """The loss of the pyramid level `scaled` (factor, level), with the `sensor` variances
+        (at mapping resolution) block-averaged onto it."""
+        factor, level = scaled
+        return Objective(gaussians, shapes, level, self._sensor_at(*sensor, factor), self.cfg)
+
     def _sensor_at(self, color: torch.Tensor, depth: torch.Tensor, factor: int) -> Variances:
         rel = factor // self.cfg.mapping.downscale
         return block_mean(color, rel).detach(), block_mean(depth, rel).detach()
 
-    def _render(self, gaussians: Gaussians, shapes: torch.Tensor, level: Level,
-                variances: Variances, w2c: torch.Tensor
-                ) -> tuple[RasterOutput, torch.Tensor, torch.Tensor]:  # fmt: skip
-        """Render at `w2c` and the total predictive variances (Eq. 10, 11); `shapes` are the
-        fixed map's shape matrices (`shape_matrices`)."""
-        u = self.cfg.uncertainty
-        out = render(gaussians, w2c.float(), level.camera, full_grad=u.full_grad, shapes=shapes)
-        return out, *predictive_variances(out, *variances, u)
-
     def _optimise(
         self,
-        gaussians: Gaussians,
-        shapes: torch.Tensor,
-        level: Level,
-        variances: Variances,
+        objective: Objective,
         w2c_start: torch.Tensor,
         pivot: torch.Tensor,
         budget: int,
         lr_scale: float = 1.0,
         double_above: float = float("inf"),
     ) -> tuple[torch.Tensor, float, int, Images | None, bool]:
-        """Adam on ξ of ``w2c = pivot · exp(ξ) · pivot⁻¹ · w2c_start`` at one pyramid level
-        (rates × `lr_scale`); returns the lowest-loss pose, its loss, the iterations used, the
-        render there (colour, depth, Σ_C, Σ_D; None when no iteration gave a finite loss),
-        which the surprise scores reuse, and whether the budget was doubled because the
-        initial loss exceeded `double_above`."""
+        """Adam on ξ of ``w2c = pivot · exp(ξ) · pivot⁻¹ · w2c_start`` on one pyramid level's
+        `objective` (rates × `lr_scale`); returns the lowest-loss pose, its loss, the
+        iterations used, the render there (colour, depth, Σ_C, Σ_D; None when no iteration
+        gave a finite loss), which the surprise scores reuse, and whether the budget was
+        doubled because the initial loss exceeded `double_above`."""
         t = self.cfg.tracking
         rho = torch.zeros(3, dtype=torch.float64, requires_grad=True)
         phi = torch.zeros(3, dtype=torch.float64, requires_grad=True)
@@ -276,9 +291,7 @@ class Tracker:
         while used < budget:
             used += 1
             w2c = pivot @ se3_exp(torch.cat([rho, phi])) @ start
-            out, var_c, var_d = self._render(gaussians, shapes, level, variances, w2c)
-            loss = tracking_loss(out.color, out.depth, out.alpha, level.rgb, level.depth,
-                                 var_c, var_d, t)  # fmt: skip
+            loss, out, var_c, var_d = objective.evaluate(w2c)
             value = float(loss.detach())
             if used == 1 and value > double_above:
                 budget, doubled = 2 * budget, True
@@ -297,15 +310,12 @@ class Tracker:
 
     def _gauss_newton(
         self,
-        gaussians: Gaussians,
-        shapes: torch.Tensor,
-        level: Level,
-        variances: Variances,
+        objective: Objective,
         w2c_start: torch.Tensor,
         budget: int,
         double_above: float = float("inf"),
     ) -> tuple[torch.Tensor, float, int, Images | None, bool]:
-        """Gauss-Newton on the left twist from `w2c_start` at one pyramid level, with
+        """Gauss-Newton on the left twist from `w2c_start` on one pyramid level's `objective`, with
         `_optimise`'s returns. Each iteration renders once. A pose with a lower loss is kept and
         gives the next step: the renderer's exact gradient against the image-motion normal
         matrix (`pose_jacobian`) divided by a trust scale, which doubles when the loss fell as
@@ -320,10 +330,7 @@ class Tracker:
         while used < budget:
             used += 1
             twist = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-            out, var_c, var_d = self._render(gaussians, shapes, level, variances,
-                                             se3_exp(twist) @ w2c)  # fmt: skip
-            loss = tracking_loss(out.color, out.depth, out.alpha, level.rgb, level.depth,
-                                 var_c, var_d, t)  # fmt: skip
+            loss, out, var_c, var_d = objective.evaluate(se3_exp(twist) @ w2c)
             value = float(loss.detach())
             if used == 1 and value > double_above:
                 budget, doubled = 2 * budget, True
@@ -335,7 +342,8 @@ class Tracker:
                     elif ratio < TRUST_POOR:
                         scale /= TRUST_GROW
                 loss.backward()
-                gradient, normal = twist.grad, self._normal_matrix(out, level, var_c, var_d)
+                gradient = twist.grad
+                normal = self._normal_matrix(out, objective.level, var_c, var_d)
                 best, best_w2c = value, w2c
                 best_images = tuple(x.detach() for x in (out.color, out.depth, var_c, var_d))
             else:

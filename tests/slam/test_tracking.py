@@ -88,19 +88,15 @@ def test_gauss_newton_refines_an_offset_start_in_few_iterations(mapped):
     tracker = Tracker(cfg)
     with torch.no_grad():  # where the registration lands from the true pose
         optimum, _ = tracker.warm_start(gaussians, shapes, full, true_w2c)
-    level = tracker.pyramid(full)[-1][1]
-    variances = tracker._sensor_at(*sensor, cfg.tracking.downscale)
+    objective = tracker._objective(gaussians, shapes, tracker.pyramid(full)[-1], sensor)
     start = _off(optimum, 0.5, 0.005)  # what a warm start leaves at worst
     for p in slam.gmap.params.values():
         p.requires_grad_(False)
     try:
-        w2c, loss, used, images, _ = tracker._gauss_newton(gaussians, shapes, level, variances,
-                                                           start, 20)  # fmt: skip
+        w2c, loss, used, images, _ = tracker._gauss_newton(objective, start, 20)
         identity = torch.eye(4, dtype=torch.float64)  # no pivot
-        _, adam_loss, _, _, _ = tracker._optimise(gaussians, shapes, level, variances, start,
-                                                  identity, 20)  # fmt: skip
-        _, optimum_loss, _, _, _ = tracker._gauss_newton(gaussians, shapes, level, variances,
-                                                         optimum, 1)  # fmt: skip
+        _, adam_loss, _, _, _ = tracker._optimise(objective, start, identity, 20)
+        _, optimum_loss, _, _, _ = tracker._gauss_newton(objective, optimum, 1)
     finally:
         for p in slam.gmap.params.values():
             p.requires_grad_(True)
