@@ -188,6 +188,11 @@ class LoopClosureConfig:
     descriptor: Literal["orb", "netvlad"] = "orb"  # netvlad: not supported yet (clear error)
     netvlad_weights: str = ""  # user-supplied NetVLAD weights file, for descriptor=netvlad
     final: bool = False  # also close loops after the last frame (LoopSplat's lc.final)
+    # the trajectory's loop correction: "rigid" (LoopSplat's: each submap's frames move with
+    # its submap, so the difference of two neighbours' corrections is a jump between two
+    # frames) or "continuous" (interpolated between the submaps' centre frames, as a pose
+    # graph over every frame would spread it; `loop_closure.correction.continuous_poses`)
+    trajectory_correction: Literal["rigid", "continuous"] = "rigid"
     # place recognition (LoopSplat: skipped below 4 submaps, min_interval 3 on TUM)
     min_submaps: int = 4  # finished submaps before detection starts
     min_interval: int = 3  # a candidate is more than this many submaps older than the query
@@ -456,6 +461,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         # online run against false loops, and geometric verification and the render-based
         # gates check every candidate here
         "loop_closure.min_interval": 1,
+        # spread each loop correction along the frames instead of stepping at submap switches
+        "loop_closure.trajectory_correction": "continuous",
         "loop_closure.min_submaps": 2,
         "seeding.new_submap_points": 30_000,
         "seeding.new_submap_gradient_points": 15_000,

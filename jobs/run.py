@@ -29,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import numba
-import numpy as np
 import torch
 
 from bgs_batch.atomic import atomic_file, remove_temporaries, save_torch, write_text
@@ -146,7 +145,7 @@ def _run(
         slam.finish(store.__getitem__)
         save_torch(slam.sensor.state_dict(), job_dir / "sensor_net.pt")
         timestamps = store.timestamps[:n]
-        poses = np.stack(slam.poses)
+        poses = slam.trajectory()
         gt = store.poses_gt[:n] if store.has_gt else None
     with atomic_file(job_dir / "trajectory.txt") as tmp:
         write_tum(tmp, timestamps, poses)

@@ -25,7 +25,11 @@ from bgs_batch.slam.frames import Level, camera_for, crop_and_clip, downsample, 
 from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY, GaussianMap
 from bgs_batch.slam.keyframes import KeyframeSelector
 from bgs_batch.slam.loop_closure import LoopCloser, inject_drift
-from bgs_batch.slam.loop_closure.correction import load_mapped, write_uncertainty
+from bgs_batch.slam.loop_closure.correction import (
+    continuous_poses,
+    load_mapped,
+    write_uncertainty,
+)
 from bgs_batch.slam.mapping import Keyframe, Mapper
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
 from bgs_batch.slam.submaps import SubmapRecord, exceeds_motion
@@ -275,6 +279,17 @@ class Slam:
             with self.timings.measure("refinement"):
                 for record in self.submaps:
                     self._refine_submap(record, read_frame)
+
+    def trajectory(self) -> np.ndarray:
+        """The camera-to-world poses (N, 4, 4) to report: as tracked and corrected, with the
+        loop corrections spread along the frames when `loop_closure.trajectory_correction` is
+        "continuous" (the submaps themselves stay rigidly corrected)."""
+        poses = np.stack(self.poses)
+        lc = self.cfg.loop_closure
+        if not (lc.enabled and lc.trajectory_correction == "continuous") or not self.submaps:
+            return poses
+        spans = [(r.first_frame, r.last_frame) for r in self.submaps]
+        return continuous_poses(poses, spans, self.loop_closer.chain_corrections(len(spans)))
 
     def _refine_submap(self, record: SubmapRecord, read_frame: Callable[[int], Frame]) -> None:
         """`Mapper.refine_uncertainty` on a frozen submap (at its final pose), starting from the

@@ -13,7 +13,12 @@ from bgs_batch.geometry import quat_xyzw_to_matrix
 from bgs_batch.render import se3_exp
 from bgs_batch.slam.loop_closure import inject_drift, place_recognition, vocabulary
 from bgs_batch.slam.loop_closure.closer import LoopCloser, LoopClosureError
-from bgs_batch.slam.loop_closure.correction import load_raw, transform_params, write_correction
+from bgs_batch.slam.loop_closure.correction import (
+    continuous_poses,
+    load_raw,
+    transform_params,
+    write_correction,
+)
 from bgs_batch.slam.loop_closure.features import KeyframeFeatures, hamming, match
 from bgs_batch.slam.loop_closure.icp import point_to_plane
 from bgs_batch.slam.loop_closure.pose_graph import Edge, information, optimise, spread_loop
@@ -338,3 +343,22 @@ def test_state_round_trips_through_weights_only_load(tmp_path):
         assert np.array_equal(a.points, b.points)
     assert np.array_equal(back.corrections[1], closer.corrections[1])
     assert np.array_equal(back.odometry[0].transform, closer.odometry[0].transform)
+
+
+def test_continuous_poses_spread_each_correction_between_submap_centres():
+    spans = [(0, 9), (10, 19), (20, 29)]
+    corrections = np.stack([np.eye(4), translation([0.03, 0, 0]),
+                            rigid([0, 0, np.radians(2.0), 0.03, 0.03, 0])])  # fmt: skip
+    chain = np.stack([translation([0.01 * i, 0, 1.0]) for i in range(30)])
+    submap_of = np.repeat(np.arange(3), 10)
+    rigidly = corrections[submap_of] @ chain  # as LoopSplat leaves them: steps at 10 and 20
+    smooth = continuous_poses(rigidly, spans, corrections)
+    applied = smooth @ np.linalg.inv(chain)  # the correction each frame got
+    assert np.allclose(applied[:5], corrections[0]) and np.allclose(applied[25:], corrections[2])
+    assert np.allclose(applied[7], translation([0.03 * (7 - 4.5) / 10, 0, 0]))  # linear
+    steps = [np.linalg.norm((applied[i + 1] @ np.linalg.inv(applied[i]))[:3, 3])
+             for i in range(29)]  # fmt: skip
+    rigid_steps = [np.linalg.norm((corrections[submap_of[i + 1]] @ np.linalg.inv(
+        corrections[submap_of[i]]))[:3, 3]) for i in range(29)]  # fmt: skip
+    assert max(steps) < max(rigid_steps) / 5  # 1/10 of each jump per frame (+ the turn's lever)
+    assert np.allclose(continuous_poses(rigidly, spans[:1], corrections[:1]), rigidly)

@@ -79,9 +79,12 @@ def test_loops_are_found_where_they_are_and_recorded(loop_case):
     assert len(report["correction"]) == 12 and report["max_shift_m"] > 0
 
     # every corrected submap file holds raw + corrected Gaussians and its correction (the r_i
-    # of the corrected ones refined at the end of the run), and the trajectory is the logged
-    # (as-tracked) pose moved by its submap's correction
+    # of the corrected ones refined at the end of the run); the cpu preset's trajectory is the
+    # logged (as-tracked) pose moved by its submap's correction at each submap's centre frame
+    # and before the first and after the last centre, and in between spread along the frames
+    # (`continuous_poses`), so it steps between two frames less than the rigid one does
     _, trajectory = read_tum(job / "trajectory.txt")
+    rigid = np.full_like(trajectory, np.nan)
     corrected = 0
     for k, path in enumerate(sorted((job / "submaps").glob("*.pt"))):
         data = torch.load(path, weights_only=True)
@@ -94,8 +97,18 @@ def test_loops_are_found_where_they_are_and_recorded(loop_case):
             assert not torch.equal(*refined)  # the cpu preset refines them
         for i in frames[k]:
             logged = np.vstack([np.reshape(events[i]["pose"], (3, 4)), [0, 0, 0, 1]])
-            np.testing.assert_allclose(trajectory[i], correction @ logged, atol=1e-6)
+            rigid[i] = correction @ logged
     assert corrected >= 2
+    centres = [(min(f) + max(f)) / 2 for _, f in sorted(frames.items())]
+    held = [i for i in range(len(trajectory))
+            if i in centres or i <= centres[0] or i >= centres[-1]]  # fmt: skip
+    np.testing.assert_allclose(trajectory[held], rigid[held], atol=1e-6)
+    assert not np.allclose(trajectory, rigid, atol=1e-6)  # spread, not stepped
+
+    def largest_step(poses):
+        return np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).max()
+
+    assert largest_step(trajectory) <= largest_step(rigid)
 
 
 @pytest.mark.slow

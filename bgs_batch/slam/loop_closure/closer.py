@@ -72,6 +72,9 @@ class LoopCloser:
         self.vocabulary = np.zeros((0, DESCRIPTOR_BYTES), np.uint8)
         self.trained_on = 0
         self.corrections: list[np.ndarray] = []  # per finished submap: raw → world
+        # per submap, also the active one: the tracked chain's frame → the world that submap
+        # was built in (the corrections of the newest frames before it began)
+        self.world_offsets: list[np.ndarray] = [np.eye(4)]
         self.odometry: list[Edge] = []  # submap k → k−1, for k ≥ 1
         self.loops: list[LoopEdge] = []
         self.registration = SubmapRegistration(cfg)
@@ -104,6 +107,7 @@ class LoopCloser:
         q = len(submaps) - 1
         centres = {q: self._centres(submaps[q])}
         self.corrections.append(np.eye(4))
+        self.world_offsets.append(self.world_offsets[-1].copy())  # the next submap's
         if q > 0:
             centres[q - 1] = self._centres(submaps[q - 1])
             to_previous = np.linalg.inv(self.corrections[q - 1])
@@ -207,9 +211,16 @@ class LoopCloser:
         if changed[-1]:
             for i in range(submaps[-1].last_frame + 1, len(poses)):  # the new submap's frames
                 poses[i] = np.ascontiguousarray(deltas[-1] @ poses[i])
+            self.world_offsets[-1] = deltas[-1] @ self.world_offsets[-1]
         return {"loop_edges": len(self.loops), "pruned": len(self.loops) - len(result.kept_loops),
                 "corrected_submaps": len(shifts), "max_shift_m": max(shifts, default=0.0),
                 "correction": _pose_row(deltas[-1] if changed[-1] else np.eye(4))}  # fmt: skip
+
+    def chain_corrections(self, submaps: int) -> np.ndarray:
+        """Per submap (`submaps` of them), the correction that moved its frames from the
+        tracked chain of poses to where they are now (`correction.continuous_poses`)."""
+        return np.stack([(self.corrections[k] if k < len(self.corrections) else np.eye(4))
+                         @ self.world_offsets[k] for k in range(submaps)])  # fmt: skip
 
     # ------------------------------------------------------------------ helpers
 
@@ -269,6 +280,7 @@ class LoopCloser:
             "vocabulary": torch.from_numpy(self.vocabulary.copy()),
             "trained_on": self.trained_on,
             "corrections": stack(self.corrections, (4, 4), np.float64),
+            "world_offsets": stack(self.world_offsets, (4, 4), np.float64),
             "odometry": stack([e.transform for e in self.odometry], (4, 4), np.float64),
             "odometry_info": stack(
                 [e.information for e in self.odometry], (DOF, DOF), np.float64
@@ -293,6 +305,9 @@ class LoopCloser:
         self.vocabulary = np.ascontiguousarray(state["vocabulary"].numpy())
         self.trained_on = int(state["trained_on"])
         self.corrections = [np.ascontiguousarray(c) for c in state["corrections"].numpy()]
+        worlds = state.get("world_offsets")  # absent in older checkpoints: none recorded
+        self.world_offsets = ([np.eye(4)] * (len(self.corrections) + 1) if worlds is None else
+                              [np.ascontiguousarray(w) for w in worlds.numpy()])  # fmt: skip
         self.odometry = [Edge(k + 1, k, np.ascontiguousarray(t), np.ascontiguousarray(i), False)
                          for k, (t, i) in enumerate(zip(state["odometry"].numpy(),
                                                         state["odometry_info"].numpy(),

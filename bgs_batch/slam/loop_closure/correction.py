@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from bgs_batch.atomic import save_torch
-from bgs_batch.geometry import matrix_to_quat_xyzw
+from bgs_batch.geometry import interpolate_poses, matrix_to_quat_xyzw
 from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY
 
 RAW_KEY = "raw_params"
@@ -90,3 +90,29 @@ def write_uncertainty(path: str | Path, logits: torch.Tensor) -> None:
 def camera_shift(delta: np.ndarray, c2w: np.ndarray) -> float:
     """How far a world correction moves the camera centre of `c2w` (metres)."""
     return float(np.linalg.norm(delta[:3, :3] @ c2w[:3, 3] + delta[:3, 3] - c2w[:3, 3]))
+
+
+def continuous_poses(poses: np.ndarray, spans: list[tuple[int, int]],
+                     corrections: np.ndarray) -> np.ndarray:  # fmt: skip
+    """Camera poses (N, 4, 4) whose loop correction varies continuously along the trajectory.
+
+    The frames ``spans[k]`` (first, last) of submap k were all moved by one rigid correction
+    ``corrections[k]`` (from the frame the tracked chain of poses lives in, left-multiplied), so
+    where two neighbours' corrections differ, the whole difference lands between two frames: a
+    jump of up to centimetres that no camera made. A pose graph over every frame would spread
+    it along the chain of frames; this does so directly: the correction at a frame is
+    interpolated between the submaps' centre frames (linear in translation, slerp in rotation)
+    and held constant before the first centre and after the last, so each submap keeps about
+    its own correction on average and no frame pair carries a step.
+    """
+    if len(corrections) < 2:
+        return poses
+    centres = np.array([(first + last) / 2 for first, last in spans], np.float64)
+    frames = np.clip(np.arange(len(poses), dtype=np.float64), centres[0], centres[-1])
+    quats = np.stack([matrix_to_quat_xyzw(c[:3, :3]) for c in corrections])
+    smooth = interpolate_poses(centres, corrections[:, :3, 3], quats, frames, np.inf)
+    submap_of = np.zeros(len(poses), np.int64)
+    for k, (first, last) in enumerate(spans):
+        submap_of[first : last + 1] = k
+    chain = np.linalg.inv(corrections[submap_of]) @ poses  # the tracked chain, uncorrected
+    return smooth @ chain
