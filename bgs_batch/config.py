@@ -61,8 +61,11 @@ class TrackingConfig:
     downscale: int = 1  # track on images downsampled by this factor
     coarse_levels: int = 0  # extra pyramid levels (×2 each) optimised coarse to fine first
     coarse_fraction: float = 0.0  # share of the iterations spent on the coarse levels
-    early_stop_rel: float = 0.0  # stop when the best loss improved by less than this ...
-    early_stop_patience: int = 0  # ... over this many iterations (0 disables early stopping)
+    # Adam stops when the best loss improved by less than this share of it over
+    # `early_stop_patience` iterations (0 disables); Gauss-Newton when its model predicts the
+    # next step gains less than this share
+    early_stop_rel: float = 0.0
+    early_stop_patience: int = 0
     # each finer level's rates are this many times the coarser one's (1: the same everywhere),
     # since Adam's first steps are about lr in size whatever is left to correct; no preset uses
     # it: more precise frame to frame, worse over a sequence (docs/experiments.md)

@@ -82,9 +82,10 @@ def test_golden_real_tum_first_30_frames(tmp_path, pinned_cache):
 def test_a_looser_tracking_convergence_fails_the_synthetic_golden(tmp_path, pinned_cache,
                                                                   monkeypatch):  # fmt: skip
     monkeypatch.delenv(UPDATE_ENV, raising=False)
-    # the cpu preset's Gauss-Newton refinement stops at steps below 1e-4: stopping a step
-    # earlier moves poses by well under a millimetre, which the golden must still see
-    record = run_pinned("synthetic", tmp_path, pinned_cache, ("tracking.gn_converged=2e-4",))
+    # the cpu preset's Gauss-Newton refinement stops once its model predicts a gain below 1e-4
+    # of the loss: stopping at 2e-4 moves poses by well under a millimetre, which the golden
+    # must still see
+    record = run_pinned("synthetic", tmp_path, pinned_cache, ("tracking.early_stop_rel=2e-4",))
     with pytest.raises(AssertionError, match="synthetic: trajectory moved"):
         check_golden("synthetic", record)
 

@@ -321,7 +321,8 @@ class Tracker:
         matrix (`pose_jacobian`) divided by a trust scale, which doubles when the loss fell as
         the model predicted and halves when it fell much less; a pose with a higher loss is
         dropped and the step from the best pose retried at a quarter of the scale. Stops once a
-        step is shorter than ``tracking.gn_converged``."""
+        step is shorter than ``tracking.gn_converged`` or the model predicts it lowers the loss
+        by less than ``tracking.early_stop_rel`` of it (Adam's test of a stale iteration)."""
         t = self.cfg.tracking
         best_w2c, best, used, doubled = w2c_start, float("inf"), 0, False
         best_images: Images | None = None
@@ -354,7 +355,7 @@ class Tracker:
             model = model + NORMAL_FLOOR * torch.trace(model) * torch.eye(6, dtype=torch.float64)
             step = -torch.linalg.solve(model, gradient)
             predicted = -float(gradient @ step + 0.5 * step @ model @ step)
-            if float(step.norm()) < t.gn_converged:
+            if float(step.norm()) < t.gn_converged or predicted < t.early_stop_rel * best:
                 break
             w2c = se3_exp(step) @ best_w2c
         return best_w2c, best, used, best_images, doubled

@@ -118,3 +118,23 @@ def test_a_registered_start_must_also_lower_the_papers_loss(mapped):
     result = Tracker(slam.cfg).track(slam.gmap, full, *sensor, true_w2c)
     ratio = result.start["loss_ratio"]
     assert result.start["start"] == ("registration" if ratio < 1 else "constant_velocity")
+
+
+def test_gauss_newton_stops_when_its_model_predicts_too_small_a_gain(mapped):
+    slam, full, sensor, true_w2c = mapped
+    gaussians = slam.gmap.gaussians()
+    shapes = shape_matrices(gaussians.log_scales, gaussians.quats)
+    start = _off(true_w2c, 0.5, 0.005)
+    used = {}
+    for share in (0.0, 1e-4, 0.5):  # 0.5: no step can be predicted to gain half the loss
+        cfg = load_config("cpu", BASE + [f"tracking.early_stop_rel={share}"])
+        tracker = Tracker(cfg)
+        objective = tracker._objective(gaussians, shapes, tracker.pyramid(full)[-1], sensor)
+        for p in slam.gmap.params.values():
+            p.requires_grad_(False)
+        try:
+            used[share] = tracker._gauss_newton(objective, start, 20)[2]
+        finally:
+            for p in slam.gmap.params.values():
+                p.requires_grad_(True)
+    assert used[0.5] == 1 < used[1e-4] <= used[0.0], used
