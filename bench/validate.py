@@ -21,9 +21,14 @@ the ratio of the mean to Open3D's ATE, the frame-to-frame error (RPE over one fr
 mean over seeds), the estimated path length of seed 0 beside the true one and Open3D's, CPU
 seconds per frame of bgs (all threads) and of Open3D, bgs's frames per second, its tracking
 seconds per frame, median tracking iterations, and the share of frames whose start the warm start
-moved (registration trusted). The SUMMARY line gives the mean ratio to
-Open3D over the real validation pieces and over the synthetic sequences, the dev ratio, and the
-slowest fps. ATEs are deterministic for a given seed; times depend on the machine's load.
+moved (registration trusted). A second table ranks the uncertainty: per sequence the depth
+AUSE-MAE (raw, m; `bgs eval`'s metrics on the keyframes, mean over seeds) of the full predictive
+variance Σ_D and of its map and sensor parts and a VarSplat-style variance, the colour AUSE, and
+at how many seeds the full variance ranks the depth errors best of the four. The SUMMARY line
+gives the mean ratio to Open3D over the real validation pieces and over the synthetic
+sequences, the dev ratio, the slowest fps, and the sequences where the full variance was not
+the best at every seed. ATEs are deterministic for a given seed; times depend on the machine's
+load.
 """
 
 from __future__ import annotations
@@ -46,7 +51,9 @@ from bgs_batch.store import FrameStore
 from converters.synthetic import motion_config, synthesize
 from converters.tum import TumOptions, convert_tum
 from jobs.run import LOG_FILE, run_job
+from outputs.export import METRICS_FILE, ExportOptions, export_job
 from outputs.trajectory import read_tum
+from outputs.uncertainty import DEPTH_VARIANCES
 
 from status_page import recorded
 
@@ -87,10 +94,17 @@ class SequenceResult:
     tracking_per_frame: list[float] = field(default_factory=list)
     median_iterations: list[float] = field(default_factory=list)
     registered: list[float] = field(default_factory=list)  # share of frames the warm start moved
+    ause_depth: list[dict[str, float]] = field(default_factory=list)  # per seed, per variance
+    ause_color: list[float] = field(default_factory=list)
 
     @property
     def ratio(self) -> float:
         return statistics.mean(self.ates) / self.o3d_ate
+
+    @property
+    def full_variance_best(self) -> int:
+        """Seeds at which the full predictive Σ_D has the lowest depth AUSE of the four."""
+        return sum(min(seed, key=seed.get) == "predictive" for seed in self.ause_depth)
 
 
 def make_stores(root: Path, only: list[str], max_frames: int | None) -> dict[str, Path]:
@@ -142,9 +156,24 @@ def run_sequence(name: str, store: Path, root: Path, seeds: int, overrides: list
         )
         starts = [e["track_start"]["start"] for e in events if "track_start" in e]
         result.registered.append(starts.count("registration") / max(1, n - 1))
+        depth, colour = uncertainty_ranking(job, store)
+        result.ause_depth.append(depth)
+        result.ause_color.append(colour)
         print(f"  {name} seed {seed}: ATE {summary.ate_rmse_m * 100:.2f} cm, "
               f"{summary.fps:.2f} fps", flush=True)  # fmt: skip
     return result
+
+
+def uncertainty_ranking(job: Path, store: Path) -> tuple[dict[str, float], float]:
+    """Depth AUSE-MAE per variance and colour AUSE-MAE (raw) of a finished job, as `bgs eval`
+    computes them (metrics only, at the run's mapping resolution)."""
+    only_metrics = ExportOptions(ply=False, trajectory=False, uncertainty=False, renders=False,
+                                 report=False, store=store)  # fmt: skip
+    export_job(job, only_metrics)
+    ranking = json.loads((job / "outputs" / METRICS_FILE).read_text())["uncertainty"]
+    depth = {name: ranking["ause_mae_depth_by_variance"][name]["ause_raw"]
+             for name in DEPTH_VARIANCES}  # fmt: skip
+    return depth, ranking["ause_mae_color"]["ause_raw"]
 
 
 def _cpu_seconds() -> float:
@@ -170,6 +199,18 @@ def print_table(results: list[SequenceResult], seeds: int) -> None:
               f"{statistics.mean(r.fps):>6.2f}{statistics.mean(r.tracking_per_frame):>10.2f}"
               f"{statistics.median(r.median_iterations):>6.0f}"
               f"{statistics.mean(r.registered):>6.0%}")  # fmt: skip
+    print()
+    print("Depth AUSE-MAE (raw, m, mean over seeds) of each variance; colour AUSE of Σ_C; "
+          "best = seeds at which the full Σ_D ranks depth errors best of the four")  # fmt: skip
+    header = (f"{'sequence':<9}" + "".join(f"{name:>12}" for name in DEPTH_VARIANCES)
+              + f"{'colour':>10}{'best':>7}")  # fmt: skip
+    print(header)
+    print("-" * len(header))
+    for r in results:
+        means = "".join(f"{statistics.mean(seed[name] for seed in r.ause_depth):>12.4f}"
+                        for name in DEPTH_VARIANCES)  # fmt: skip
+        print(f"{r.name:<9}{means}{statistics.mean(r.ause_color):>10.4f}"
+              f"{f'{r.full_variance_best}/{len(r.ause_depth)}':>7}")  # fmt: skip
 
 
 def summary_line(results: list[SequenceResult]) -> str:
@@ -187,6 +228,9 @@ def summary_line(results: list[SequenceResult]) -> str:
         parts.append(f"dev {by_name['dev'].ratio:.2f}x")
     slowest = min(results, key=lambda r: statistics.mean(r.fps))
     parts.append(f"slowest {statistics.mean(slowest.fps):.2f} fps ({slowest.name})")
+    behind = [r.name for r in results if r.full_variance_best < len(r.ause_depth)]
+    parts.append("full Σ_D ranks depth best at every seed " + (
+        "on every sequence" if not behind else f"except on {', '.join(behind)}"))  # fmt: skip
     return "SUMMARY cpu preset: " + "; ".join(parts)
 
 
