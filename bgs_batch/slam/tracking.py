@@ -41,7 +41,7 @@ from bgs_batch.slam.losses import (
     tracking_loss,
     tracking_weights,
 )
-from bgs_batch.slam.pose_jacobian import image_motion_jacobians, l1_normal_matrix
+from bgs_batch.slam.pose_jacobian import ALPHA_MIN, image_motion_normal_matrix, irls_weights
 from bgs_batch.slam.registration import View, register
 
 Variances = tuple[torch.Tensor, torch.Tensor]  # sensor colour [H,W,1], sensor depth [H,W,1]
@@ -363,11 +363,9 @@ class Tracker:
     def _normal_matrix(self, out: RasterOutput, level: Level, var_c: torch.Tensor,
                        var_d: torch.Tensor) -> torch.Tensor:  # fmt: skip
         """The reweighted least-squares normal matrix (6, 6) of `tracking_loss` at a render."""
-        j_color, j_depth, surface = image_motion_jacobians(out, level.camera)
         w_color, w_depth = tracking_weights(self.cfg.tracking)
         alpha = out.alpha.detach().to(torch.float64)
-        mask = ((level.depth > 0) & surface[..., None]) * alpha**3
-        color = l1_normal_matrix(out.color - level.rgb, w_color * mask / var_c.sqrt(), j_color)
-        depth = l1_normal_matrix(out.depth - level.depth, w_depth * mask / var_d.sqrt(),
-                                 j_depth[..., None, :])  # fmt: skip
-        return color + depth
+        mask = ((level.depth > 0) & (alpha >= ALPHA_MIN)) * alpha**3  # pixels with a surface
+        irls_color = irls_weights(out.color - level.rgb, w_color * mask / var_c.sqrt())
+        irls_depth = irls_weights(out.depth - level.depth, w_depth * mask / var_d.sqrt())
+        return image_motion_normal_matrix(out, level.camera, irls_color, irls_depth)

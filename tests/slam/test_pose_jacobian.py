@@ -6,7 +6,13 @@ import torch
 from bgs_batch.config import load_config
 from bgs_batch.render import render, se3_exp
 from bgs_batch.slam import Slam
-from bgs_batch.slam.pose_jacobian import image_motion_jacobians, l1_normal_matrix
+from bgs_batch.slam.pose_jacobian import (
+    ALPHA_MIN,
+    image_motion_jacobians,
+    image_motion_normal_matrix,
+    irls_weights,
+    l1_normal_matrix,
+)
 from bgs_batch.store import FrameStore
 from converters.synthetic import SynthConfig, synthesize
 from converters.tum import convert_tum
@@ -62,3 +68,27 @@ def test_the_l1_normal_matrix_is_the_reweighted_sum_with_a_median_floor():
     expected = sum(irls[k, 0] * torch.outer(jacobian[k, 0], jacobian[k, 0]) for k in range(50))
     assert torch.allclose(l1_normal_matrix(residual, weight, jacobian), expected)
     assert not l1_normal_matrix(residual, torch.zeros_like(weight), jacobian).any()
+
+
+def test_the_fused_normal_matrix_equals_the_spelled_out_one(scene):
+    gaussians, camera, w2c = scene
+    with torch.no_grad():
+        out = render(gaussians, (se3_exp(torch.tensor([0.01, 0, 0, 0, 0.02, 0],
+                                                       dtype=torch.float64)) @ w2c).float(), camera)
+        target = render(gaussians, w2c.float(), camera)
+    generator = torch.Generator().manual_seed(1)
+    surface = out.alpha.to(torch.float64) >= ALPHA_MIN
+    weight_c = torch.rand(out.color.shape, generator=generator, dtype=torch.float64) * surface
+    weight_d = torch.rand(out.depth.shape, generator=generator, dtype=torch.float64) * surface
+    weight_d[:40] = 0  # pixels out of the loss
+    irls_c = irls_weights(out.color - target.color, weight_c)
+    irls_d = irls_weights(out.depth - target.depth, weight_d)
+    j_color, j_depth, _ = image_motion_jacobians(out, camera)
+    expected = (l1_normal_matrix(out.color - target.color, weight_c, j_color)
+                + l1_normal_matrix(out.depth - target.depth, weight_d, j_depth[..., None, :]))
+    fused = image_motion_normal_matrix(out, camera, irls_c, irls_d)
+    assert torch.allclose(fused, expected, rtol=1e-10, atol=0), (fused - expected).abs().max()
+    assert torch.equal(fused, fused.T)
+    colour_only = image_motion_normal_matrix(out, camera, irls_c, torch.zeros_like(irls_d))
+    assert torch.allclose(colour_only, l1_normal_matrix(out.color - target.color, weight_c,
+                                                        j_color), rtol=1e-10, atol=0)
