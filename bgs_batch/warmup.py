@@ -18,7 +18,9 @@ from pathlib import Path
 from bgs_batch.config import load_config
 
 FRAMES = 6  # enough for tracking's warm start, a keyframe and a mapping call
-WIDTH, HEIGHT = 96, 72
+# large enough that the registration is trusted, so Gauss-Newton's kernel compiles too (at
+# 96×72 the cropped, downscaled frames are too small to register)
+WIDTH, HEIGHT = 128, 96
 
 
 def warm_up(workdir: Path) -> float:
