@@ -30,6 +30,10 @@ from bgs_batch.render import Camera, RasterOutput
 ALPHA_MIN = 0.5  # pixels with less rendered alpha have no surface to move with the camera
 RESIDUAL_FLOOR = 1e-12  # of the median: a frame fitted exactly
 
+_UPPER = [(a, b) for a in range(6) for b in range(a, 6)]  # the 21 entries of a symmetric 6×6
+_UPPER_A = np.array([a for a, _ in _UPPER])
+_UPPER_B = np.array([b for _, b in _UPPER])
+
 
 def image_motion_jacobians(out: RasterOutput, camera: Camera
                            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
@@ -99,11 +103,6 @@ def image_motion_normal_matrix(out: RasterOutput, camera: Camera, irls_color: to
     for k, (a, b) in enumerate(_UPPER):
         normal[a, b] = normal[b, a] = float(upper[k])
     return normal
-
-
-_UPPER = [(a, b) for a in range(6) for b in range(a, 6)]  # the 21 entries of a symmetric 6×6
-_UPPER_A = np.array([a for a, _ in _UPPER])
-_UPPER_B = np.array([b for _, b in _UPPER])
 
 
 @numba.njit(cache=True, inline="always")
