@@ -9,7 +9,10 @@ the Kinect v1 noise model, quantisation and holes. Everything is drawn from ``nu
 keyed by the seed, so a seed gives byte-identical files, and is vectorised over pixels.
 
 The output is exactly a TUM RGB-D directory (``rgb/``, ``depth/``, ``rgb.txt``, ``depth.txt``,
-``groundtruth.txt``) plus ``calibration.txt`` (``fx fy cx cy``, the ETH3D convention). Ground
+``groundtruth.txt``) plus ``calibration.txt`` (``fx fy cx cy``, the ETH3D convention) and
+``depth_sigma/``: per depth image, the standard deviation of the noise drawn for each reading
+(16-bit PNG, same name as the depth image, ``DEPTH_SIGMA_SCALE`` units per metre), the truth
+against which a sensor-noise model can be scored (`read_depth_sigma`). Ground
 truth is the exact camera-to-world pose of each rendered frame (OpenCV camera axes: x right,
 y down, z forward); depth is registered to the colour camera and rendered from the same pose, its
 time stamps are offset only so that readers must associate the two streams.
@@ -31,7 +34,7 @@ from bgs_batch.atomic import atomic_dir
 from bgs_batch.errors import InputError, OutputExistsError
 from bgs_batch.geometry import matrix_to_quat_xyzw
 from bgs_batch.signals import interruptible
-from converters.image_codec import write_png
+from converters.image_codec import read, write_png
 
 # Independent random streams derived from the seed (the second entry of the generator key).
 _SCENE_STREAM, _PATH_STREAM, _SENSOR_STREAM, _SHAKE_STREAM = 0, 1, 2, 3
@@ -42,6 +45,8 @@ _SIZE_LIMITS = (16, 8192)  # image width and height, pixels
 _CURVE_SAMPLES = 4096  # for measuring the length and reach of the camera path
 _GOLDEN_ANGLE = math.pi * (3.0 - math.sqrt(5.0))  # turn between noise octaves: lattices never align
 _GOLDEN_STEP = 0x9E3779B9  # 2^32 / golden ratio: seed step between octaves (well spread)
+DEPTH_SIGMA_DIR = "depth_sigma"
+DEPTH_SIGMA_SCALE = 100_000.0  # units per metre: 10 µm steps, up to 0.65 m
 
 
 @dataclass(frozen=True)
@@ -476,10 +481,11 @@ class RoomRenderer:
 
     def render(
         self, exposure: list[np.ndarray], depth_pose: np.ndarray, rng: np.random.Generator
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """RGB (H, W, 3) uint8 averaged over the camera-to-world poses of `exposure` (motion
-        blur), and depth (H, W) uint16 seen from `depth_pose`. A pose is (4, 4), or (H, 1, 4, 4)
-        for one pose per image row (rolling shutter)."""
+        blur), depth (H, W) uint16 seen from `depth_pose`, and the standard deviation (H, W) of
+        the noise drawn for each depth reading (m, 0 where invalid). A pose is (4, 4), or
+        (H, 1, 4, 4) for one pose per image row (rolling shutter)."""
         cfg = self.config
         colour, z, valid = self._shade(depth_pose)
         for pose in exposure:
@@ -488,7 +494,7 @@ class RoomRenderer:
         colour = colour / np.float32(len(exposure)) if len(exposure) > 1 else colour
         noise = rng.standard_normal(colour.shape, dtype=np.float32)
         rgb = np.clip(np.rint(colour + cfg.rgb_noise * noise), 0, 255).astype(np.uint8)
-        return rgb, self._depth(z.astype(np.float64), valid, rng)
+        return rgb, *self._depth(z.astype(np.float64), valid, rng)
 
     def _shade(self, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Noise-free colour (H, W, 3) in 8-bit levels, depth (m) and depth validity from `pose`."""
@@ -571,19 +577,23 @@ class RoomRenderer:
         level = np.clip(0.5 + cfg.texture_contrast * (level - 0.5), 0.0, 1.0)[..., None]
         return faces["dark"][face] * (1.0 - level) + faces["light"][face] * level
 
-    def _depth(self, z: np.ndarray, valid: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Kinect-like 16-bit depth: noisy, quantised, 0 where invalid, out of range or in holes.
+    def _depth(self, z: np.ndarray, valid: np.ndarray, rng: np.random.Generator
+               ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """Kinect-like 16-bit depth: noisy, quantised, 0 where invalid, out of range or in holes;
+        and the noise's standard deviation (m, 0 where the depth is 0).
 
         Holes are the top hole_fraction of a smooth random field: a few irregular blobs.
         """
         cfg = self.config
-        noisy = z + cfg.depth_sigma(z) * rng.standard_normal(z.shape)
+        sigma = cfg.depth_sigma(z)
+        noisy = z + sigma * rng.standard_normal(z.shape)
         cells = (max(2, round(cfg.hole_blobs * cfg.height / cfg.width)), cfg.hole_blobs)
         size = (cfg.width, cfg.height)
         field = cv2.resize(rng.standard_normal(cells), size, interpolation=cv2.INTER_CUBIC)
         holes = field > np.quantile(field, 1.0 - cfg.hole_fraction)
         valid = valid & (z >= cfg.depth_range[0]) & (z <= cfg.depth_range[1]) & ~holes
-        return np.where(valid, np.rint(noisy * cfg.depth_scale), 0).astype(np.uint16)
+        return (np.where(valid, np.rint(noisy * cfg.depth_scale), 0).astype(np.uint16),
+                np.where(valid, sigma, 0.0))  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------------
@@ -622,6 +632,7 @@ def _write_sequence(
     """Render every frame into root and write the TUM list, ground-truth and calibration files."""
     (root / "rgb").mkdir()
     (root / "depth").mkdir()
+    (root / DEPTH_SIGMA_DIR).mkdir()
     renderer = RoomRenderer(config)
     path = camera_path(config)
     poses = path(np.arange(config.frames, dtype=np.float64))
@@ -633,11 +644,12 @@ def _write_sequence(
         exposure = [depth_pose if t == 0 else path(i + t + (0 if rows is None else rows))
                     for t in instants]  # fmt: skip
         rng = np.random.default_rng((config.seed, _SENSOR_STREAM, i))
-        rgb, depth = renderer.render(exposure, depth_pose, rng)
+        rgb, depth, sigma = renderer.render(exposure, depth_pose, rng)
         time = config.start_time + i / config.fps
         stamp, depth_stamp = f"{time:.6f}", f"{time + config.depth_delay:.6f}"
         write_png(root / f"rgb/{stamp}.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         write_png(root / f"depth/{depth_stamp}.png", depth)
+        write_png(root / f"{DEPTH_SIGMA_DIR}/{depth_stamp}.png", encode_depth_sigma(sigma))
         rgb_lines.append(f"{stamp} rgb/{stamp}.png\n")
         depth_lines.append(f"{depth_stamp} depth/{depth_stamp}.png\n")
         values = np.r_[pose[:3, 3], matrix_to_quat_xyzw(pose[:3, :3])]
@@ -654,6 +666,22 @@ def _write_sequence(
         header = _TUM_HEADER.format(what=what, seed=config.seed, columns=columns)
         (root / name).write_text(header + "".join(lines))
     (root / "calibration.txt").write_text(" ".join(f"{x:.9f}" for x in config.intrinsics) + "\n")
+
+
+def encode_depth_sigma(sigma: np.ndarray) -> np.ndarray:
+    """σ (m) as the 16-bit image of ``depth_sigma/`` (rounded, clipped to its range)."""
+    return np.clip(np.rint(sigma * DEPTH_SIGMA_SCALE), 0, np.iinfo(np.uint16).max).astype(np.uint16)
+
+
+def read_depth_sigma(sequence: Path, frame: int) -> np.ndarray:
+    """The simulated depth-noise σ (m, float32 [H,W], 0 where invalid) of depth image `frame`
+    (0-based, in the order of ``depth.txt``) of a `synthesize`d sequence."""
+    sequence = Path(sequence)
+    names = [line.split()[1] for line in (sequence / "depth.txt").read_text().splitlines()
+             if line and not line.startswith("#")]  # fmt: skip
+    image = read(sequence / DEPTH_SIGMA_DIR / Path(names[frame]).name, cv2.IMREAD_UNCHANGED,
+                 "depth sigma image")  # fmt: skip
+    return image.astype(np.float32) / np.float32(DEPTH_SIGMA_SCALE)
 
 
 def sensor_timing(config: SynthConfig) -> tuple[np.ndarray | None, np.ndarray]:

@@ -70,6 +70,7 @@ def test_tum_layout(open_seq: Path) -> None:
         "calibration.txt",
         "depth",
         "depth.txt",
+        "depth_sigma",
         "groundtruth.txt",
         "rgb",
         "rgb.txt",
@@ -97,6 +98,23 @@ def test_tum_layout(open_seq: Path) -> None:
         assert depth_image.shape == (120, 160) and depth_image.dtype == np.uint16
     calib = [float(x) for x in (open_seq / "calibration.txt").read_text().split()]
     assert calib == [131.25, 131.25, 79.5, 59.5]
+
+
+def test_depth_sigma_is_the_noise_model_of_each_valid_reading(open_seq: Path) -> None:
+    """depth_sigma/ holds, per depth image, σ of the noise drawn at each valid reading: the
+    model at the true depth, which the noisy reading is within a few σ of."""
+    from converters.synthetic import read_depth_sigma
+
+    depth_names = [name for _, name in read_list(open_seq / "depth.txt")]
+    for frame, name in enumerate(depth_names):
+        depth = cv2.imread(str(open_seq / name), cv2.IMREAD_UNCHANGED) / 5000.0
+        simulated = read_depth_sigma(open_seq, frame)
+        assert simulated.shape == depth.shape and simulated.dtype == np.float32
+        assert np.array_equal(simulated > 0, depth > 0)
+        valid = depth > 0
+        difference = np.abs(simulated[valid] - sigma(depth[valid]))
+        relative = difference / simulated[valid]
+        assert np.median(relative) < 0.01 and relative.max() < 0.2
 
 
 def test_deterministic_per_seed(open_seq: Path, tmp_path: Path) -> None:

@@ -26,7 +26,7 @@ def _offset(degrees: float, metres: float) -> np.ndarray:
 
 
 def _view(renderer: RoomRenderer, c2w: np.ndarray, seed: int) -> View:
-    rgb, depth = renderer.render([c2w], c2w, np.random.default_rng(seed))
+    rgb, depth, _ = renderer.render([c2w], c2w, np.random.default_rng(seed))
     fx, fy, cx, cy = CONFIG.intrinsics
     camera = Camera(fx, fy, cx, cy, CONFIG.width, CONFIG.height)
     metres = torch.from_numpy(depth.astype(np.float64) / CONFIG.depth_scale)
