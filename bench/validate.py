@@ -24,11 +24,13 @@ seconds per frame, median tracking iterations, and the share of frames whose sta
 moved (registration trusted). A second table ranks the uncertainty: per sequence the depth
 AUSE-MAE (raw, m; `bgs eval`'s metrics on the keyframes, mean over seeds) of the full predictive
 variance Σ_D and of its map and sensor parts and a VarSplat-style variance, the colour AUSE, and
-at how many seeds the full variance ranks the depth errors best of the four. The SUMMARY line
+at how many seeds the full variance ranks the depth errors best of the four, and, on the
+synthetic sequences, whose true per-pixel noise σ `bgs synth` writes, the Spearman correlation
+of the predicted sensor depth σ with it (`sigma_rank`). The SUMMARY line
 gives the mean ratio to Open3D over the real validation pieces and over the synthetic
-sequences, the dev ratio, the slowest fps, and the sequences where the full variance was not
-the best at every seed. ATEs are deterministic for a given seed; times depend on the machine's
-load.
+sequences, the dev ratio, the slowest fps, the sequences where the full variance was not
+the best at every seed, and the lowest Spearman correlation. ATEs are deterministic for a
+given seed; times depend on the machine's load.
 """
 
 from __future__ import annotations
@@ -43,17 +45,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 from baseline import open3d_dense_slam
+from scipy.stats import spearmanr
 
 from bgs_batch.config import ConfigError, load_config
 from bgs_batch.metrics import ate, path_length, rpe
+from bgs_batch.slam.frames import Level, downsample
 from bgs_batch.store import FrameStore
-from converters.synthetic import motion_config, synthesize
+from converters.synthetic import motion_config, read_depth_sigma, synthesize
 from converters.tum import TumOptions, convert_tum
 from jobs.run import LOG_FILE, run_job
 from outputs.export import METRICS_FILE, ExportOptions, export_job
+from outputs.jobfiles import FinishedJob
 from outputs.trajectory import read_tum
-from outputs.uncertainty import DEPTH_VARIANCES
+from outputs.uncertainty import DEPTH_VARIANCES, UncertaintyRenderer, select_frames
 
 from status_page import recorded
 
@@ -96,6 +102,7 @@ class SequenceResult:
     registered: list[float] = field(default_factory=list)  # share of frames the warm start moved
     ause_depth: list[dict[str, float]] = field(default_factory=list)  # per seed, per variance
     ause_color: list[float] = field(default_factory=list)
+    sigma_rho: list[float] = field(default_factory=list)  # synthetic: per seed, see sigma_rank
 
     @property
     def ratio(self) -> float:
@@ -159,6 +166,8 @@ def run_sequence(name: str, store: Path, root: Path, seeds: int, overrides: list
         depth, colour = uncertainty_ranking(job, store)
         result.ause_depth.append(depth)
         result.ause_color.append(colour)
+        if name in SYNTHETIC:
+            result.sigma_rho.append(sigma_rank(job, store, root / name))
         print(f"  {name} seed {seed}: ATE {summary.ate_rmse_m * 100:.2f} cm, "
               f"{summary.fps:.2f} fps", flush=True)  # fmt: skip
     return result
@@ -174,6 +183,29 @@ def uncertainty_ranking(job: Path, store: Path) -> tuple[dict[str, float], float
     depth = {name: ranking["ause_mae_depth_by_variance"][name]["ause_raw"]
              for name in DEPTH_VARIANCES}  # fmt: skip
     return depth, ranking["ause_mae_color"]["ause_raw"]
+
+
+def sigma_rank(job: Path, store: Path, sequence: Path) -> float:
+    """Spearman correlation of the predicted sensor depth σ with the σ of the noise `bgs synth`
+    drew, per keyframe at the run's mapping resolution (the simulated σ cropped and block-
+    averaged over valid readings as the depth is), mean over keyframes."""
+    finished = FinishedJob(job, store)
+    cfg = finished.config
+    crop, factor = cfg.crop_edge or 0, cfg.mapping.downscale
+    rhos = []
+    with FrameStore(store) as frames:
+        renderer = UncertaintyRenderer(finished, frames)
+        for index in select_frames(finished):
+            item = renderer.frame(index)
+            simulated = read_depth_sigma(sequence, index)
+            simulated = simulated[crop:-crop, crop:-crop] if crop else simulated
+            blocks = Level(torch.zeros(*simulated.shape, 3), torch.from_numpy(simulated)[..., None],
+                           item.camera)  # fmt: skip
+            simulated = downsample(blocks, factor).depth[..., 0].numpy()
+            valid = item.valid & (simulated > 0)
+            predicted = np.sqrt(item.var_depth_sensor[valid])
+            rhos.append(spearmanr(predicted, simulated[valid]).statistic)
+    return float(np.mean(rhos))
 
 
 def _cpu_seconds() -> float:
@@ -201,16 +233,19 @@ def print_table(results: list[SequenceResult], seeds: int) -> None:
               f"{statistics.mean(r.registered):>6.0%}")  # fmt: skip
     print()
     print("Depth AUSE-MAE (raw, m, mean over seeds) of each variance; colour AUSE of Σ_C; "
-          "best = seeds at which the full Σ_D ranks depth errors best of the four")  # fmt: skip
+          "best = seeds at which the full Σ_D ranks depth errors best of the four; ρ σ_D = "
+          "Spearman correlation of the predicted sensor depth σ with the simulated one "
+          "(synthetic only)")  # fmt: skip
     header = (f"{'sequence':<9}" + "".join(f"{name:>12}" for name in DEPTH_VARIANCES)
-              + f"{'colour':>10}{'best':>7}")  # fmt: skip
+              + f"{'colour':>10}{'best':>7}{'ρ σ_D':>8}")  # fmt: skip
     print(header)
     print("-" * len(header))
     for r in results:
         means = "".join(f"{statistics.mean(seed[name] for seed in r.ause_depth):>12.4f}"
                         for name in DEPTH_VARIANCES)  # fmt: skip
+        rho = f"{statistics.mean(r.sigma_rho):.2f}" if r.sigma_rho else "-"
         print(f"{r.name:<9}{means}{statistics.mean(r.ause_color):>10.4f}"
-              f"{f'{r.full_variance_best}/{len(r.ause_depth)}':>7}")  # fmt: skip
+              f"{f'{r.full_variance_best}/{len(r.ause_depth)}':>7}{rho:>8}")  # fmt: skip
 
 
 def summary_line(results: list[SequenceResult]) -> str:
@@ -231,6 +266,10 @@ def summary_line(results: list[SequenceResult]) -> str:
     behind = [r.name for r in results if r.full_variance_best < len(r.ause_depth)]
     parts.append("full Σ_D ranks depth best at every seed " + (
         "on every sequence" if not behind else f"except on {', '.join(behind)}"))  # fmt: skip
+    rhos = {r.name: min(r.sigma_rho) for r in results if r.sigma_rho}
+    if rhos:
+        worst = min(rhos, key=rhos.get)
+        parts.append(f"sensor σ_D vs simulated: Spearman ≥ {rhos[worst]:.2f} ({worst})")
     return "SUMMARY cpu preset: " + "; ".join(parts)
 
 

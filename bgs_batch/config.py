@@ -36,6 +36,16 @@ class UncertaintyConfig:
     sensor_initial: float = 0.0  # untrained output; 0: PyTorch's default init (the authors')
     sensor_lr: float = 1e-4  # Adam, trained in mapping only
     sensor_downscale: int = 1  # CPU lever: evaluate the network this many times coarser
+    # "none": the network predicts σ²_sensor,D itself (the paper). "nguyen": σ²_sensor,D is
+    # Nguyen et al.'s (2012) Kinect noise model of the measured depth, σ = a + b(z − z0)² +
+    # c/√z · θ²/(π/2 − θ)² with θ the surface's angle to the ray from the depth's local slope,
+    # times exp(the network's output), which starts at 0: an untrained network already ranks
+    # depth errors by the sensor's physics, and learning corrects it (docs/method.md §3)
+    sensor_prior: Literal["none", "nguyen"] = "none"
+    nguyen_a: float = 0.0012  # m
+    nguyen_b: float = 0.0019  # m⁻¹
+    nguyen_z0: float = 0.4  # m
+    nguyen_c: float = 0.0001  # m^1.5
     # At the end of a run, fit each frozen submap's r_i (Adam at `refine_lr`) and the sensor
     # network by NLL_C + NLL_D (Eq. 13, 14) over the submap's keyframes for this many passes,
     # the geometry and colours fixed (0: off, as the authors' SLAM). Why: within mapping's
@@ -327,6 +337,10 @@ RANGES: dict[str, Range] = {
     "uncertainty.sensor_initial": NON_NEGATIVE,
     "uncertainty.sensor_lr": POSITIVE,
     "uncertainty.sensor_downscale": COUNT,
+    "uncertainty.nguyen_a": POSITIVE,
+    "uncertainty.nguyen_b": NON_NEGATIVE,
+    "uncertainty.nguyen_z0": NON_NEGATIVE,
+    "uncertainty.nguyen_c": NON_NEGATIVE,
     "uncertainty.refine_passes": NON_NEGATIVE,
     "uncertainty.refine_lr": POSITIVE,
     "tracking.iterations": COUNT,
@@ -454,6 +468,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         # start the network at the map floor's scale, not at softplus(0) ≈ 0.69, from which the
         # NLL saturates it at the 1e-4 floor for good (docs/experiments.md)
         "uncertainty.sensor_initial": 1e-3,
+        # the sensor's depth variance from its physics (Nguyen et al. 2012) times a learned
+        # correction: it ranks depth errors from the first frame (docs/experiments.md)
+        "uncertainty.sensor_prior": "nguyen",
         # at the end, fit the frozen submaps' r_i and the sensor network by the NLL: the map
         # term gets the iterations mapping cannot give it; tracking is over by then
         "uncertainty.refine_passes": 15,

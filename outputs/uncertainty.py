@@ -127,7 +127,7 @@ class UncertaintyRenderer:
         self.downscale = self.cfg.mapping.downscale if downscale is None else downscale
         check_downscale(self.downscale, self.cfg.mapping.downscale)
         u = self.cfg.uncertainty
-        self.sensor = SensorNoiseNet(u.sensor_hidden, u.sensor_min)
+        self.sensor = SensorNoiseNet.from_config(u)
         try:
             self.sensor.load_state_dict(job.sensor_state())
         except RuntimeError as err:  # shapes or names differ from the run's config
@@ -153,7 +153,7 @@ class UncertaintyRenderer:
                 ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
         """σ²_sensor (colour, depth) as `Slam.process` computes it, at the render resolution."""
         u, m = self.cfg.uncertainty, self.cfg.mapping.downscale
-        sensor = self.sensor.at_scale(mapping.rgb, mapping.depth, u.sensor_downscale)
+        sensor = self.sensor(mapping, u.sensor_downscale)
         if self.downscale >= m:
             return tuple(block_mean(v, self.downscale // m) for v in sensor)
         return tuple(repeat_blocks(v, m // self.downscale, height, width) for v in sensor)

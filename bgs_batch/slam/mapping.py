@@ -103,7 +103,7 @@ class Mapper:
             keyframe = self._pick(keyframes, rng)
             level = keyframe.level
             out = render(gmap.gaussians(), keyframe.w2c, level.camera, full_grad=u.full_grad)
-            sensor_c, sensor_d = self.sensor.at_scale(level.rgb, level.depth, u.sensor_downscale)
+            sensor_c, sensor_d = self.sensor(level, u.sensor_downscale)
             var_c, var_d = predictive_variances(out, sensor_c, sensor_d, u)
             terms = mapping_loss(out.color, out.depth, level.rgb, level.depth, var_c, var_d,
                                  gmap.params["log_scales"], m.gamma, m.ssim_weight)  # fmt: skip
@@ -139,8 +139,7 @@ class Mapper:
             for keyframe in keyframes:
                 level = keyframe.level
                 out = render(gaussians, keyframe.w2c, level.camera, full_grad=u.full_grad)
-                sensor_c, sensor_d = self.sensor.at_scale(level.rgb, level.depth,
-                                                          u.sensor_downscale)  # fmt: skip
+                sensor_c, sensor_d = self.sensor(level, u.sensor_downscale)
                 var_c, var_d = predictive_variances(out, sensor_c, sensor_d, u)
                 nll_c, nll_d = l1_nll_terms(out.color, out.depth, level.rgb, level.depth,
                                             var_c, var_d)[2:]  # fmt: skip

@@ -76,7 +76,7 @@ class Slam:
         torch.manual_seed(self.cfg.seed)
         self.rng = np.random.default_rng(self.cfg.seed)
         u = self.cfg.uncertainty
-        self.sensor = SensorNoiseNet(u.sensor_hidden, u.sensor_min, u.sensor_initial)
+        self.sensor = SensorNoiseNet.from_config(u)
         self.sensor_opt = Adam(self.sensor.parameters(), lr=u.sensor_lr)
         self.tracker = Tracker(self.cfg)
         self.mapper = Mapper(self.cfg, self.sensor, self.sensor_opt)
@@ -106,7 +106,7 @@ class Slam:
         event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
         with self.timings.measure("sensor"), torch.no_grad():
             scale = self.cfg.uncertainty.sensor_downscale
-            sensor_c, sensor_d = self.sensor.at_scale(level.rgb, level.depth, scale)
+            sensor_c, sensor_d = self.sensor(level, scale)
         c2w, score_c, score_d = self._track(full, sensor_c, sensor_d, event)
         self.poses.append(c2w)
         first_of_submap = not self.active_keyframes

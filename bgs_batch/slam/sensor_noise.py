@@ -1,36 +1,105 @@
-"""The sensor-noise network (paper §III-D; docs/method.md §3): per-pixel RGB-D noise variances.
+"""The sensor-noise model (paper §III-D; docs/method.md §3): per-pixel RGB-D noise variances.
 
 A small fully convolutional net on the frame itself, input ``[depth m, R, G, B]``: 4 conv 3×3
-layers and 4 per-pixel fully connected (1×1 conv) layers, 32 channels, ReLU, two output maps
-(colour variance shared by R, G, B; depth variance) through softplus plus a floor. Trained with
-the map during mapping only; in tracking it is evaluated once per frame and detached.
+layers and 4 per-pixel fully connected (1×1 conv) layers, 32 channels, ReLU, two output maps.
+The colour variance (shared by R, G, B) is softplus of the first plus a floor. The depth
+variance is, as in the paper, softplus of the second plus the floor, or, with a physical prior
+(`NguyenDepthNoise`), the prior times exp(the second, bounded to ± ln 10 by tanh): the network
+then learns a correction to the sensor's known physics and starts from none. Trained with the
+map during mapping only; in tracking it is evaluated once per frame and detached.
 (The authors' code has 3 rather than 4 per-pixel layers; the paper describes 4.)
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from bgs_batch.slam.frames import block_mean, repeat_blocks
+from bgs_batch.config import UncertaintyConfig
+from bgs_batch.render import Camera
+from bgs_batch.slam.frames import Level, block_mean, repeat_blocks
 
 CONV_LAYERS = 4
 PIXEL_LAYERS = 4  # the last one maps to the 2 outputs
 INPUT_CHANNELS = 4  # depth, R, G, B
-OUTPUT_CHANNELS = 2  # colour variance, depth variance
+OUTPUT_CHANNELS = 2  # colour variance, depth variance (or its log-correction)
+DEPTH_OUTPUT = 1
+# the learned correction scales the prior by at most this factor either way (smoothly, by
+# tanh): enough to recalibrate a sensor, too little to scramble the physics' ranking
+MAX_CORRECTION = 10.0
+
+
+@dataclass(frozen=True)
+class NguyenDepthNoise:
+    """Axial noise of a structured-light depth camera: Nguyen, Izadi, Lovell, "Modeling Kinect
+    Sensor Noise for Improved 3D Reconstruction and Tracking", 3DIMPVT 2012, Eq. 3:
+
+        σ_z(z, θ) = a + b (z − z0)² + c/√z · θ² / (π/2 − θ)²   (m)
+
+    with z the depth and θ the surface's tilt away from facing the camera, here estimated from
+    the measured depth's slope (central differences over valid neighbours). A pixel's σ is at
+    most half its 3×3 neighbourhood's depth range where that exceeds the axial term: a mixed
+    pixel at a depth edge lies between its neighbours, and there θ → π/2 is an artefact.
+    """
+
+    a: float = 0.0012
+    b: float = 0.0019
+    z0: float = 0.4
+    c: float = 0.0001
+
+    @classmethod
+    def from_config(cls, u: UncertaintyConfig) -> NguyenDepthNoise:
+        return cls(u.nguyen_a, u.nguyen_b, u.nguyen_z0, u.nguyen_c)
+
+    def variance(self, depth: torch.Tensor, camera: Camera) -> torch.Tensor:
+        """σ_z² [H,W,1] (m²) of a depth image [H,W,1] (m, 0 invalid) seen by `camera`;
+        invalid pixels get the model's value at z0, so every variance is finite and positive."""
+        d = depth[..., 0]
+        valid = d > 0
+        z = torch.where(valid, d, torch.full_like(d, self.z0))
+        slope_x = _central_difference(d, valid, dim=1) * camera.fx
+        slope_y = _central_difference(d, valid, dim=0) * camera.fy
+        theta = torch.atan(torch.hypot(slope_x, slope_y) / z)
+        axial = self.a + self.b * (z - self.z0) ** 2
+        grazing = self.c / z.sqrt() * theta**2 / (math.pi / 2 - theta).clamp_min(1e-6) ** 2
+        mixed = 0.5 * _local_range(d, valid)
+        sigma = torch.minimum(axial + grazing, torch.maximum(axial, mixed))
+        return (sigma**2)[..., None]
+
+
+def _central_difference(d: torch.Tensor, valid: torch.Tensor, dim: int) -> torch.Tensor:
+    """(d[+1] − d[−1]) / 2 along `dim` where both neighbours are valid, else 0 (edges: 0)."""
+    out = torch.zeros_like(d)
+    n = d.shape[dim]
+    ahead, behind, centre = (d.narrow(dim, s, n - 2) for s in (2, 0, 1))
+    both = valid.narrow(dim, 2, n - 2) & valid.narrow(dim, 0, n - 2)
+    out.narrow(dim, 1, n - 2).copy_(torch.where(both, 0.5 * (ahead - behind), 0.0 * centre))
+    return out
+
+
+def _local_range(d: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """max − min of the valid depths in each pixel's 3×3 neighbourhood (0 at invalid pixels)."""
+    far = torch.finfo(d.dtype).max
+    high = F.max_pool2d(torch.where(valid, d, -far)[None, None], 3, 1, 1)[0, 0]
+    low = -F.max_pool2d(torch.where(valid, -d, -far)[None, None], 3, 1, 1)[0, 0]
+    return torch.where(valid, high - low, 0.0)
 
 
 class SensorNoiseNet(nn.Module):
     """Predicts σ²_sensor for colour and depth at every pixel of an RGB-D frame."""
 
-    def __init__(self, hidden: int = 32, floor: float = 1e-4, initial: float = 0.0) -> None:
+    def __init__(self, hidden: int = 32, floor: float = 1e-4, initial: float = 0.0,
+                 prior: NguyenDepthNoise | None = None) -> None:  # fmt: skip
         """`initial` > `floor`: the head's bias starts at softplus⁻¹(initial − floor), so the
-        untrained network predicts about `initial` everywhere (0: PyTorch's default bias)."""
+        untrained network predicts about `initial` everywhere (0: PyTorch's default bias).
+        With a depth `prior`, the depth output's weights start at 0: no correction."""
         super().__init__()
         self.floor = floor
+        self.prior = prior
         convs = [nn.Conv2d(INPUT_CHANNELS, hidden, 3, padding=1)]
         convs += [nn.Conv2d(hidden, hidden, 3, padding=1) for _ in range(CONV_LAYERS - 1)]
         pixels = [nn.Conv2d(hidden, hidden, 1) for _ in range(PIXEL_LAYERS - 1)]
@@ -41,26 +110,42 @@ class SensorNoiseNet(nn.Module):
                 raise ValueError(f"initial sensor variance {initial} must exceed the floor {floor}")
             with torch.no_grad():
                 self.head.bias.fill_(math.log(math.expm1(initial - floor)))
+        if prior is not None:
+            with torch.no_grad():
+                self.head.weight[DEPTH_OUTPUT].zero_()
+                self.head.bias[DEPTH_OUTPUT].zero_()
 
-    def forward(self, rgb: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Variances ([H,W,1] colour, [H,W,1] depth) from rgb [H,W,3] in [0,1], depth [H,W,1] m."""
+    @classmethod
+    def from_config(cls, u: UncertaintyConfig) -> SensorNoiseNet:
+        """The network a run with these settings trains (`uncertainty.sensor_*`)."""
+        prior = NguyenDepthNoise.from_config(u) if u.sensor_prior == "nguyen" else None
+        return cls(u.sensor_hidden, u.sensor_min, u.sensor_initial, prior)
+
+    def raw(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """The head's two output maps [H,W,2] before their activations."""
         x = torch.cat([depth, rgb], dim=-1).permute(2, 0, 1)[None]
         for layer in self.hidden:
             x = F.relu(layer(x))
-        out = F.softplus(self.head(x)) + self.floor
-        out = out[0].permute(1, 2, 0)
-        return out[..., :1], out[..., 1:]
+        return self.head(x)[0].permute(1, 2, 0)
 
-    def at_scale(self, rgb: torch.Tensor, depth: torch.Tensor, downscale: int
-                 ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-        """The variances for a full-size frame, evaluating the network `downscale` times coarser.
+    def forward(self, level: Level, downscale: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+        """Variances ([H,W,1] colour, [H,W,1] depth) of a frame `level` (rgb in [0,1], depth m).
 
-        A CPU lever (the network dominates a mapping iteration at full resolution): the input is
-        block-averaged, the output repeated back to every pixel of its block.
+        `downscale` > 1 is a CPU lever (the network dominates a mapping iteration at full
+        resolution): the network sees the block-averaged frame and its outputs are repeated back
+        to every pixel of their block; the depth prior is evaluated at full resolution.
         """
-        if downscale == 1:
-            return self(rgb, depth)
-        h, w = rgb.shape[:2]
-        coarse = [block_mean(t, downscale) for t in (rgb, depth)]
-        return tuple(repeat_blocks(v, downscale, h, w) for v in self(*coarse))
-
+        h, w = level.rgb.shape[:2]
+        rgb, depth = (block_mean(t, downscale) for t in (level.rgb, level.depth))
+        raw = self.raw(rgb, depth)
+        colour = F.softplus(raw[..., :DEPTH_OUTPUT]) + self.floor
+        if self.prior is None:
+            depth_part = F.softplus(raw[..., DEPTH_OUTPUT:]) + self.floor
+        else:
+            bound = math.log(MAX_CORRECTION)
+            depth_part = torch.exp(bound * torch.tanh(raw[..., DEPTH_OUTPUT:] / bound))
+        if downscale > 1:
+            colour, depth_part = (repeat_blocks(v, downscale, h, w) for v in (colour, depth_part))
+        if self.prior is None:
+            return colour, depth_part
+        return colour, self.prior.variance(level.depth, level.camera) * depth_part

@@ -5,7 +5,6 @@ import math
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
 from bgs_batch.config import KeyframeConfig, TrackingConfig, UncertaintyConfig
 from bgs_batch.slam.keyframes import KeyframeSelector
@@ -18,7 +17,6 @@ from bgs_batch.slam.losses import (
     surprise_scores,
     tracking_loss,
 )
-from bgs_batch.slam.sensor_noise import SensorNoiseNet
 
 
 def test_predictive_variance_floors_and_unobserved_fill():
@@ -128,35 +126,6 @@ def test_mapping_loss_parts_and_gradients():
     assert color.grad.abs().sum() > 0
 
 
-def test_sensor_network_shapes_floor_and_gradients():
-    torch.manual_seed(0)
-    net = SensorNoiseNet(hidden=8).double()
-    assert len([m for m in net.modules() if isinstance(m, torch.nn.Conv2d)]) == 8
-    rgb, depth, _ = images(10, 7)
-    var_c, var_d = net(rgb, depth)
-    assert var_c.shape == var_d.shape == (10, 7, 1)
-    assert (var_c > 1e-4).all() and (var_d > 1e-4).all()
-    (var_c.sum() + var_d.sum()).backward()
-    assert all(p.grad is not None for p in net.parameters())
-    with torch.no_grad():  # the floor holds however negative the head's output
-        net.head.bias.fill_(-1e3)
-        assert torch.allclose(net(rgb, depth)[0], torch.tensor(1e-4, dtype=torch.float64))
-
-
-def test_sensor_network_initial_output():
-    """`initial` sets the head's bias so that the untrained net predicts about that variance
-    (closed form: softplus(b) + floor = initial); it must exceed the floor."""
-    torch.manual_seed(0)
-    net = SensorNoiseNet(hidden=8, floor=1e-4, initial=1e-3).double()
-    assert torch.allclose(F.softplus(net.head.bias) + 1e-4, torch.tensor(1e-3, dtype=torch.float64))
-    var_c, var_d = net(*images(10, 7)[:2])
-    for var in (var_c, var_d):  # the default-initialised weights spread it by well under 10x
-        assert float(var.min()) > 1e-4 and float(var.max()) < 1e-2
-        assert float(var.median()) == pytest.approx(1e-3, rel=0.5)
-    with pytest.raises(ValueError, match="must exceed the floor"):
-        SensorNoiseNet(floor=1e-3, initial=1e-3)
-
-
 def test_keyframe_rule():
     sel = KeyframeSelector(KeyframeConfig())
     decisions = [sel.decide(0, None, None, True)]
@@ -171,15 +140,3 @@ def test_keyframe_rule():
     restored = KeyframeSelector(KeyframeConfig())
     restored.load_state_dict(sel.state_dict())
     assert restored.since_last == sel.since_last == 1
-
-
-def test_sensor_network_at_a_coarser_scale():
-    torch.manual_seed(0)
-    net = SensorNoiseNet(hidden=8).double()
-    rgb, depth, _ = images(9, 7)
-    var_c, var_d = net.at_scale(rgb, depth, 2)
-    assert var_c.shape == var_d.shape == (9, 7, 1)
-    coarse_c, _ = net(*(t[:8, :6].reshape(4, 2, 3, 2, -1).mean((1, 3)) for t in (rgb, depth)))
-    assert torch.equal(var_c[2:4, 4:6, 0], coarse_c[1:2, 2:3, 0].expand(2, 2))
-    assert torch.equal(var_c[8, :, 0], var_c[7, :, 0])  # edge rows replicate
-    assert torch.equal(net.at_scale(rgb, depth, 1)[0], net(rgb, depth)[0])

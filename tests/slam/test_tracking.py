@@ -28,7 +28,7 @@ def mapped(tmp_path_factory):
     slam.process(store[0])
     full, level = slam.prepare(store[1])
     with torch.no_grad():
-        sensor = slam.sensor.at_scale(level.rgb, level.depth, slam.cfg.uncertainty.sensor_downscale)
+        sensor = slam.sensor(level, slam.cfg.uncertainty.sensor_downscale)
     true_w2c = torch.from_numpy(np.linalg.inv(np.linalg.inv(store.poses_gt[0]) @ store.poses_gt[1]))
     return slam, full, sensor, true_w2c
 

@@ -108,7 +108,7 @@ class SubmapRegistration:
         lc, u = self.cfg.loop_closure, self.cfg.uncertainty
         level = keyframe.level
         with torch.no_grad():
-            sensor_c, sensor_d = sensor.at_scale(level.rgb, level.depth, u.sensor_downscale)
+            sensor_c, sensor_d = sensor(level, u.sensor_downscale)
         if lc.weighting == "uniform":  # swamps the per-pixel variances: every pixel alike
             sensor_c = torch.full_like(sensor_c, UNIFORM_VARIANCE)
             sensor_d = torch.full_like(sensor_d, UNIFORM_VARIANCE)
