@@ -311,7 +311,9 @@ def synth(ctx: click.Context, out_dir: Path, frames: int, size: tuple[int, int],
     """Render a synthetic RGB-D sequence of a textured room, in TUM layout.
 
     Open3D ray casting of a room with furniture, a smooth camera path, Kinect-like depth noise
-    and holes, exact ground truth (groundtruth.txt) and intrinsics (calibration.txt). The
+    and holes, exact ground truth (groundtruth.txt), intrinsics (calibration.txt) and the
+    standard deviation of the noise at every depth reading (depth_sigma/, 16-bit PNGs in units
+    of 10 µm, named like the depth images: a truth to score sensor-noise models against). The
     ground-truth pose of a frame is the camera's at its time stamp: the middle of the exposure
     of the middle row.
 

@@ -38,9 +38,10 @@ class UncertaintyConfig:
     sensor_downscale: int = 1  # CPU lever: evaluate the network this many times coarser
     # "none": the network predicts σ²_sensor,D itself (the paper). "nguyen": σ²_sensor,D is
     # Nguyen et al.'s (2012) Kinect noise model of the measured depth, σ = a + b(z − z0)² +
-    # c/√z · θ²/(π/2 − θ)² with θ the surface's angle to the ray from the depth's local slope,
-    # times exp(the network's output), which starts at 0: an untrained network already ranks
-    # depth errors by the sensor's physics, and learning corrects it (docs/method.md §3)
+    # c/√z · θ²/(π/2 − θ)² with θ the surface's tilt from the depth's local slope, times
+    # exp(the network's output, within ±ln 10), which starts at 0: an untrained network ranks
+    # depth errors by the sensor's physics, and learning corrects it (docs/method.md §3; not a
+    # preset's choice yet: it changes the keyframes the surprise picks, docs/experiments.md)
     sensor_prior: Literal["none", "nguyen"] = "none"
     nguyen_a: float = 0.0012  # m
     nguyen_b: float = 0.0019  # m⁻¹
@@ -468,9 +469,6 @@ PRESETS: dict[str, dict[str, Any]] = {
         # start the network at the map floor's scale, not at softplus(0) ≈ 0.69, from which the
         # NLL saturates it at the 1e-4 floor for good (docs/experiments.md)
         "uncertainty.sensor_initial": 1e-3,
-        # the sensor's depth variance from its physics (Nguyen et al. 2012) times a learned
-        # correction: it ranks depth errors from the first frame (docs/experiments.md)
-        "uncertainty.sensor_prior": "nguyen",
         # at the end, fit the frozen submaps' r_i and the sensor network by the NLL: the map
         # term gets the iterations mapping cannot give it; tracking is over by then
         "uncertainty.refine_passes": 15,

@@ -122,11 +122,11 @@ class SensorNoiseNet(nn.Module):
         return cls(u.sensor_hidden, u.sensor_min, u.sensor_initial, prior)
 
     def raw(self, rgb: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
-        """The head's two output maps [H,W,2] before their activations."""
+        """The head's two output maps [1,2,H,W] before their activations."""
         x = torch.cat([depth, rgb], dim=-1).permute(2, 0, 1)[None]
         for layer in self.hidden:
             x = F.relu(layer(x))
-        return self.head(x)[0].permute(1, 2, 0)
+        return self.head(x)
 
     def forward(self, level: Level, downscale: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
         """Variances ([H,W,1] colour, [H,W,1] depth) of a frame `level` (rgb in [0,1], depth m).
@@ -136,14 +136,13 @@ class SensorNoiseNet(nn.Module):
         to every pixel of their block; the depth prior is evaluated at full resolution.
         """
         h, w = level.rgb.shape[:2]
-        rgb, depth = (block_mean(t, downscale) for t in (level.rgb, level.depth))
-        raw = self.raw(rgb, depth)
-        colour = F.softplus(raw[..., :DEPTH_OUTPUT]) + self.floor
-        if self.prior is None:
-            depth_part = F.softplus(raw[..., DEPTH_OUTPUT:]) + self.floor
-        else:
+        raw = self.raw(*(block_mean(t, downscale) for t in (level.rgb, level.depth)))
+        variances = (F.softplus(raw) + self.floor)[0].permute(1, 2, 0)
+        colour, depth_part = variances[..., :DEPTH_OUTPUT], variances[..., DEPTH_OUTPUT:]
+        if self.prior is not None:
             bound = math.log(MAX_CORRECTION)
-            depth_part = torch.exp(bound * torch.tanh(raw[..., DEPTH_OUTPUT:] / bound))
+            correction = raw[0, DEPTH_OUTPUT:].permute(1, 2, 0)
+            depth_part = torch.exp(bound * torch.tanh(correction / bound))
         if downscale > 1:
             colour, depth_part = (repeat_blocks(v, downscale, h, w) for v in (colour, depth_part))
         if self.prior is None:

@@ -133,8 +133,7 @@ def test_refining_a_frozen_submap_fits_only_the_uncertainties(store30, tmp_path)
     u.refine_passes = 5
     assert slam.mapper.refine_uncertainty(slam.gmap, keyframes) == 5 * len(keyframes) == 15
     after = total_nll()
-    # measured: 0.085 in all; 0.46 with the plain sensor network, which starts further off
-    assert before - after > 0.01 * len(keyframes), (before, after)
+    assert before - after > 0.05 * len(keyframes), (before, after)  # measured: 0.46 in all
     refined = slam.gmap.state_dict()
     for name, value in params.items():
         changed = not torch.equal(refined[name], value)
@@ -177,5 +176,5 @@ def test_pivot_turns_the_camera_about_a_point_in_the_scene(store30, tmp_path):
         cfg = load_config("cpu", [*base, f"tracking.pivot_depth_ratio={ratio}"])
         result = Tracker(cfg).track(slam.gmap, full, *sensor, start)
         errors[ratio] = float(np.linalg.norm((gt @ result.w2c.numpy())[:3, 3]))
-    # measured: 3.2 cm about the camera centre, 0.77 cm about the point at half the depth
-    assert errors[0.5] < 0.012 < 0.024 < errors[0.0], errors
+    # measured: 2.3 cm about the camera centre, 0.26 cm about the point at half the depth
+    assert errors[0.5] < 0.006 < 0.012 < errors[0.0], errors

@@ -138,12 +138,14 @@ def test_prior_network_starts_at_the_prior_and_learns_a_log_correction():
         assert torch.allclose(net(frame)[1], prior / 10.0)
 
 
-def test_presets_choose_their_sensor_model():
-    cpu = SensorNoiseNet.from_config(load_config("cpu").uncertainty)
-    assert cpu.prior == NGUYEN
-    assert SensorNoiseNet.from_config(load_config("paper").uncertainty).prior is None
-    custom = load_config("cpu", ["uncertainty.nguyen_b=0.003"]).uncertainty
-    assert SensorNoiseNet.from_config(custom).prior.b == 0.003
+def test_the_settings_choose_the_sensor_model():
+    for preset in ("cpu", "paper"):  # the plain network (docs/experiments.md says why)
+        assert SensorNoiseNet.from_config(load_config(preset).uncertainty).prior is None
+    nguyen = SensorNoiseNet.from_config(load_config("cpu", ["uncertainty.sensor_prior=nguyen"])
+                                        .uncertainty)  # fmt: skip
+    assert nguyen.prior == NGUYEN
+    custom = load_config("cpu", ["uncertainty.sensor_prior=nguyen", "uncertainty.nguyen_b=0.003"])
+    assert SensorNoiseNet.from_config(custom.uncertainty).prior.b == 0.003
 
 
 def test_prior_ranks_the_simulated_noise_of_a_synthetic_frame():
