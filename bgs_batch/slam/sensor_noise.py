@@ -75,9 +75,9 @@ def _central_difference(d: torch.Tensor, valid: torch.Tensor, dim: int) -> torch
     """(d[+1] − d[−1]) / 2 along `dim` where both neighbours are valid, else 0 (edges: 0)."""
     out = torch.zeros_like(d)
     n = d.shape[dim]
-    ahead, behind, centre = (d.narrow(dim, s, n - 2) for s in (2, 0, 1))
+    ahead, behind = d.narrow(dim, 2, n - 2), d.narrow(dim, 0, n - 2)
     both = valid.narrow(dim, 2, n - 2) & valid.narrow(dim, 0, n - 2)
-    out.narrow(dim, 1, n - 2).copy_(torch.where(both, 0.5 * (ahead - behind), 0.0 * centre))
+    out.narrow(dim, 1, n - 2).copy_(torch.where(both, 0.5 * (ahead - behind), 0.0))
     return out
 
 
