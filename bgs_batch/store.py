@@ -6,6 +6,7 @@ Layout::
     /depth       uint16  [N,H,W]    depth_scale units per metre (or float32 metres), 0 = invalid
     /timestamp   float64 [N]        seconds, of the RGB frame
     /pose_gt     float64 [N,4,4]    camera-to-world ground truth, NaN rows where unknown (optional)
+    /depth_timestamp  float64 [N]   seconds, of the depth image (optional; absent: of the RGB)
     /intrinsics  float64 [3,3]      pinhole matrix of the stored, registered RGB-D pair
     attributes   schema_version, source_format, source_path, sequence, depth_scale, distortion,
                  distortion_applied, width, height, created_by, provenance (JSON of every choice);
@@ -67,6 +68,13 @@ class Frame:
     depth: np.ndarray  # (H, W) float32 metres, 0 where invalid
     timestamp: float
     pose_gt: np.ndarray | None  # (4, 4) float64 camera-to-world, None where unknown
+    # seconds, when the depth image was taken; None: with the colour image (`timestamp`)
+    depth_timestamp: float | None = None
+
+    @property
+    def depth_time_offset(self) -> float:
+        """Seconds from the colour image to the depth image (0 when taken together)."""
+        return 0.0 if self.depth_timestamp is None else self.depth_timestamp - self.timestamp
 
 
 @dataclass(frozen=True)
@@ -95,6 +103,7 @@ class EncodedFrame:
     depth_dtype: np.dtype
     timestamp: float
     pose_gt: np.ndarray | None
+    depth_timestamp: float | None = None
 
 
 def _shuffle(raw: np.ndarray) -> np.ndarray:
@@ -127,11 +136,13 @@ def encode_frame(
     timestamp: float,
     pose_gt: np.ndarray | None = None,
     level: int = DEFAULT_COMPRESSION_LEVEL,
+    depth_timestamp: float | None = None,
 ) -> EncodedFrame:
     """Compress one frame into HDF5 chunk bytes; thread-safe and GIL-free in its heavy parts.
 
     `rgb` is (H, W, 3) uint8 in RGB order; `depth` is (H, W) uint16 in depth-scale units or
-    float32 metres, 0 where invalid.
+    float32 metres, 0 where invalid; `depth_timestamp` is when the depth image was taken, when
+    the recording says and it differs from the colour image's `timestamp`.
     """
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"rgb must be (H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
@@ -144,6 +155,7 @@ def encode_frame(
         depth_dtype=depth.dtype,
         timestamp=float(timestamp),
         pose_gt=None if pose_gt is None else np.asarray(pose_gt, np.float64),
+        depth_timestamp=None if depth_timestamp is None else float(depth_timestamp),
     )
 
 
@@ -182,6 +194,7 @@ class FrameStoreWriter:
         self.tmp = temp_path(self.path)
         self._file = h5py.File(self.tmp, "w", libver="latest")
         self._timestamps: list[float] = []
+        self._depth_timestamps: list[float | None] = []
         self._poses: list[np.ndarray] = []
         self._shape: tuple[int, int] | None = None
         self._depth_dtype: np.dtype | None = None
@@ -230,6 +243,7 @@ class FrameStoreWriter:
             dataset.set_extent((n + 1, *frame_shape))
             dataset.write_direct_chunk((n,) + (0,) * len(frame_shape), chunk)
         self._timestamps.append(frame.timestamp)
+        self._depth_timestamps.append(frame.depth_timestamp)
         self._poses.append(np.full((4, 4), np.nan) if frame.pose_gt is None else frame.pose_gt)
 
     def finish(self) -> Path:
@@ -238,6 +252,10 @@ class FrameStoreWriter:
             raise InputError(f"no frames to write to {self.path}")
         f, meta = self._file, self.meta
         f["timestamp"] = np.asarray(self._timestamps, np.float64)
+        if any(t is not None for t in self._depth_timestamps):
+            f["depth_timestamp"] = np.array(
+                [t if d is None else d for t, d in zip(self._timestamps, self._depth_timestamps,
+                                                       strict=True)], np.float64)  # fmt: skip
         if meta.has_gt:
             f["pose_gt"] = np.stack(self._poses).astype(np.float64)
         f["intrinsics"] = np.asarray(meta.intrinsics, np.float64)
@@ -294,6 +312,13 @@ def validate(f: h5py.File, path: Path | str) -> None:
         problems.append(f"/timestamp must be float64 [{n}], is {ts.dtype} {ts.shape}")
     elif n > 1 and not np.all(np.diff(ts[()]) > 0):
         problems.append("/timestamp is not strictly increasing")
+    if "depth_timestamp" in f:
+        depth_ts = f["depth_timestamp"]
+        if depth_ts.shape != (n,) or depth_ts.dtype != np.float64:
+            problems.append(f"/depth_timestamp must be float64 [{n}], is {depth_ts.dtype} "
+                            f"{depth_ts.shape}")  # fmt: skip
+        elif not np.all(np.isfinite(depth_ts[()])):
+            problems.append("/depth_timestamp holds values that are not finite")
     if n == 0:
         problems.append("the store holds no frames")
     if rgb.ndim == 4 and (f.attrs["width"], f.attrs["height"]) != (rgb.shape[2], rgb.shape[1]):
@@ -364,6 +389,9 @@ class FrameStore:
         self.attrs: dict[str, Any] = dict(self._file.attrs)
         self.intrinsics: np.ndarray = self._file["intrinsics"][()]
         self.timestamps: np.ndarray = self._file["timestamp"][()]
+        # when each depth image was taken; None: with its colour image
+        self.depth_timestamps: np.ndarray | None = (
+            self._file["depth_timestamp"][()] if "depth_timestamp" in self._file else None)
         self.depth_scale = float(self.attrs["depth_scale"])
         self.width, self.height = int(self.attrs["width"]), int(self.attrs["height"])
         self.crop_edge = int(self.attrs.get("crop_edge", 0))  # recommended; stores before it: 0
@@ -471,7 +499,10 @@ class FrameStore:
         pose = None
         if self._poses is not None and np.all(np.isfinite(self._poses[index])):
             pose = self._poses[index].copy()
-        return Frame(index, rgb, depth, float(self.timestamps[index]), pose)
+        depth_time = None
+        if self.depth_timestamps is not None:
+            depth_time = float(self.depth_timestamps[index])
+        return Frame(index, rgb, depth, float(self.timestamps[index]), pose, depth_time)
 
 
 def _is_our_pipeline(ds: h5py.Dataset) -> bool:

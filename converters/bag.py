@@ -433,7 +433,8 @@ def _stream_frames(
             f"{depth.topic} @ {depth.stamps[j] / NS_PER_S:.6f} s"
         )
         pose = None if poses is None or not np.all(np.isfinite(poses[k])) else poses[k]
-        return SourceFrame(name, float(stamps[k]), pose, partial(decoder, rgb_raw, depth_raw, name))
+        return SourceFrame(name, float(stamps[k]), pose, partial(decoder, rgb_raw, depth_raw, name),
+                           float(depth.stamps[j] / NS_PER_S))  # fmt: skip
 
     with closing(reader):
         connections = [c for c in reader.connections if c.topic in (rgb.topic, depth.topic)]

@@ -61,6 +61,7 @@ class SourceFrame:
     timestamp: float
     pose_gt: np.ndarray | None
     load: Callable[[], tuple[np.ndarray, np.ndarray]]
+    depth_timestamp: float | None = None  # when the depth image was taken, if not with colour
 
 
 @dataclass
@@ -105,7 +106,8 @@ def _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progre
 
     def encode(frame: SourceFrame) -> EncodedFrame:
         rgb, depth = frame.load()
-        return encode_frame(rgb, depth, frame.timestamp, frame.pose_gt, level)
+        return encode_frame(rgb, depth, frame.timestamp, frame.pose_gt, level,
+                            frame.depth_timestamp)  # fmt: skip
 
     with (
         FrameStoreWriter(out, meta, overwrite=overwrite, level=level) as writer,

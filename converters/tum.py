@@ -287,8 +287,10 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
             timestamp=float(t),
             pose_gt=None if poses is None or not np.all(np.isfinite(poses[k])) else poses[k],
             load=partial(load_pair, rgb, depth, undistort),
+            depth_timestamp=float(t_depth),
         )
-        for k, ((rgb, depth), t) in enumerate(zip(pairs.files, pairs.stamps, strict=True))
+        for k, ((rgb, depth), t, t_depth) in enumerate(
+            zip(pairs.files, pairs.stamps, pairs.depth_stamps, strict=True))
     ]
     provenance = {
         **pairs.provenance(options),
@@ -359,8 +361,14 @@ class _Pairs:
         """The frames' timestamps: their colour images'."""
         return self.rgb_t[self.chosen[:, 0]]
 
+    @property
+    def depth_stamps(self) -> np.ndarray:
+        """When the frames' depth images were taken (the store keeps them: tracking moves each
+        depth image to its colour image's time, `bgs_batch.slam.depth_timing`)."""
+        return self.depth_t[self.chosen[:, 1]]
+
     def provenance(self, options: TumOptions) -> dict[str, Any]:
-        diffs = np.abs(self.stamps - self.depth_t[self.chosen[:, 1]])
+        diffs = np.abs(self.stamps - self.depth_stamps)
         return {
             "association": "order-preserving one-to-one, most pairs then least summed |dt|",
             "association_tolerance_s": options.tolerance,

@@ -63,6 +63,24 @@ def test_round_trip_bitwise(tmp_path, dtype):
                 assert np.array_equal(frame.pose_gt, pose)
         assert np.isnan(store.poses_gt[1]).all()
         assert raw["rgb"].chunks == (1, 24, 32, 3) and raw["rgb"].compression == "gzip"
+        # depth taken with the colour: no /depth_timestamp, and no offset to move it by
+        assert "depth_timestamp" not in raw and store.depth_timestamps is None
+        assert frame.depth_timestamp is None and frame.depth_time_offset == 0.0
+
+
+def test_depth_timestamps_are_kept_where_the_recording_has_them(tmp_path):
+    """A frame without its own depth time stamp was taken with its colour image."""
+    frames = list(random_frames(3))
+    path = tmp_path / "s.h5"
+    with FrameStoreWriter(path, meta()) as writer:
+        for k, (rgb, depth, t, pose) in enumerate(frames):
+            writer.append(encode_frame(rgb, depth, t, pose, depth_timestamp=None if k == 1
+                                       else t + 0.01 * (k - 1)))  # fmt: skip
+        writer.finish()
+    with FrameStore(path) as store:
+        offsets = [frame.depth_time_offset for frame in store]
+        assert store.depth_timestamps.dtype == np.float64
+    np.testing.assert_allclose(offsets, [-0.01, 0.0, 0.01], atol=1e-9)
 
 
 @pytest.mark.parametrize("dtype", [np.uint16, np.float32])
@@ -138,6 +156,8 @@ def test_existing_output_refused_unless_overwrite(tmp_path):
         (lambda f: f["pose_gt"].__setitem__((0, 0, 0), 3.0), "not rigid"),
         (lambda f: f.__delitem__("intrinsics"), "missing dataset /intrinsics"),
         (lambda f: f.attrs.__setitem__("provenance", "{"), "not JSON"),
+        (lambda f: f.create_dataset("depth_timestamp", data=[1.0, np.nan, 2.0]), "not finite"),
+        (lambda f: f.create_dataset("depth_timestamp", data=[1.0, 2.0]), "float64 \\[3\\]"),
     ],
 )
 def test_validation_names_the_problem(tmp_path, damage, message):

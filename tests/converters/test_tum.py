@@ -46,7 +46,10 @@ def test_converts_pixels_timestamps_and_interpolated_gt(tum_folder, tmp_path):
             # GT is sampled at 100 Hz from a constant-rate motion: lerp + slerp are exact
             assert np.allclose(frame.pose_gt, pose_matrix(*np.split(gt_pose(frame.timestamp), [3])),
                                atol=2e-6)  # fmt: skip
-        depth0 = cv2.imread(str(sorted((tum_folder / "depth").iterdir())[0]), -1)
+        # each depth image's own time stamp is kept (the SLAM moves it to the colour's time)
+        depth_names = sorted((tum_folder / "depth").iterdir())
+        assert store.depth_timestamps.tolist() == [float(name.stem) for name in depth_names]
+        depth0 = cv2.imread(str(depth_names[0]), -1)
         assert np.array_equal(store.read_depth_raw(0), depth0)
         assert store[0].depth[0, 0] == 0
 
