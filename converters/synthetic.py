@@ -81,8 +81,9 @@ class SynthConfig:
     loop: bool = False  # the path is a closed curve: the last frame is taken at the first pose
     fps: float = 30.0
 
-    # Time stamps: RGB at start_time + i / fps, depth depth_delay later (TUM's streams are not
-    # synchronous either; the offset makes readers associate by nearest time stamp).
+    # Time stamps: RGB at start_time + i / fps, depth taken depth_delay later (TUM's streams
+    # are not synchronous either: readers associate by nearest time stamp, and the SLAM moves
+    # each depth image to its colour image's time).
     start_time: float = 1_700_000_000.0
     depth_delay: float = 0.004
 
@@ -487,11 +488,9 @@ class RoomRenderer:
         the noise drawn for each depth reading (m, 0 where invalid). A pose is (4, 4), or
         (H, 1, 4, 4) for one pose per image row (rolling shutter)."""
         cfg = self.config
-        colour, z, valid = self._shade(depth_pose)
-        for pose in exposure:
-            if pose is not depth_pose:
-                colour = colour + self._shade(pose)[0]
-        colour = colour / np.float32(len(exposure)) if len(exposure) > 1 else colour
+        depth_view, z, valid = self._shade(depth_pose)
+        views = [depth_view if pose is depth_pose else self._shade(pose)[0] for pose in exposure]
+        colour = sum(views[1:], views[0]) / np.float32(len(views)) if len(views) > 1 else views[0]
         noise = rng.standard_normal(colour.shape, dtype=np.float32)
         rgb = np.clip(np.rint(colour + cfg.rgb_noise * noise), 0, 255).astype(np.uint8)
         return rgb, *self._depth(z.astype(np.float64), valid, rng)
@@ -637,11 +636,14 @@ def _write_sequence(
     path = camera_path(config)
     poses = path(np.arange(config.frames, dtype=np.float64))
     rows, instants = sensor_timing(config)
+    depth_lag = config.depth_delay * config.fps  # in frames
     rgb_lines, depth_lines, gt_lines = [], [], []
     for i, pose in enumerate(poses):
         check_interrupted()
-        depth_pose = pose if rows is None else path(i + rows)
-        exposure = [depth_pose if t == 0 else path(i + t + (0 if rows is None else rows))
+        row_times = 0.0 if rows is None else rows
+        # the depth image is taken at its own time stamp, depth_delay after the colour image's
+        depth_pose = pose if rows is None and not depth_lag else path(i + depth_lag + row_times)
+        exposure = [depth_pose if t == 0 and not depth_lag else path(i + t + row_times)
                     for t in instants]  # fmt: skip
         rng = np.random.default_rng((config.seed, _SENSOR_STREAM, i))
         rgb, depth, sigma = renderer.render(exposure, depth_pose, rng)

@@ -14,6 +14,7 @@ from bgs_batch.errors import InputError, Interrupted, OutputExistsError
 from bgs_batch.geometry import pose_matrix
 from converters.synthetic import (
     EFFECTS,
+    RoomRenderer,
     SynthConfig,
     camera_path,
     camera_poses,
@@ -115,6 +116,26 @@ def test_depth_sigma_is_the_noise_model_of_each_valid_reading(open_seq: Path) ->
         difference = np.abs(simulated[valid] - sigma(depth[valid]))
         relative = difference / simulated[valid]
         assert np.median(relative) < 0.01 and relative.max() < 0.2
+
+
+def test_the_depth_image_is_taken_at_its_own_time_stamp(tmp_path: Path) -> None:
+    """depth.txt stamps each depth image `depth_delay` after its colour image, and the image is
+    the view from where the camera is then (as Kinect v1's free-running streams are), not from
+    the colour image's pose: the noise-free depth from the later pose is the closer one."""
+    config = SynthConfig(**{**SMALL, "frames": 3}, depth_delay=0.015, shake_rate=2.0)
+    seq = synthesize(tmp_path / "seq", config)
+    stamps = [float(t) for t, _ in read_list(seq / "depth.txt")]
+    colour_stamps = [float(t) for t, _ in read_list(seq / "rgb.txt")]
+    np.testing.assert_allclose(np.subtract(stamps, colour_stamps), 0.015, atol=2e-6)
+    renderer = RoomRenderer(config)
+    path = camera_path(config)
+    measured = depths(seq)[2]
+    errors = []
+    for frame in (2.0, 2.0 + 0.015 * config.fps):
+        _, z, valid = renderer._shade(path(np.array([frame]))[0])
+        both = valid & (measured > 0)
+        errors.append(np.median(np.abs(measured[both] - z[both])))
+    assert errors[1] < 0.5 * errors[0], errors  # only its own pose explains it to the noise
 
 
 def test_deterministic_per_seed(open_seq: Path, tmp_path: Path) -> None:
