@@ -281,6 +281,15 @@ class Config:
     # crop (`bgs inspect` shows it; the reference systems' crop for the camera, else 0)
     crop_edge: int | None = None
     max_depth: float = 10.0  # m; deeper readings are treated as invalid
+    # Move each depth image to its colour image's time (the store's /depth_timestamp) by the
+    # camera's constant-velocity motion over the gap: unsynchronised sensors (Kinect v1, TUM
+    # fr1) pair images up to 20 ms apart, up to two degrees of turn at fr1/rpy's speed
+    # (`slam.depth_timing`, docs/method.md §6). The gap is the stamps' difference minus
+    # `depth_time_lag`, the seconds by which the driver stamps depth later after capture than
+    # colour. Off in both presets: TUM's stamps are arrival times whose lag is not known well
+    # enough to help on recordings nobody tuned on (docs/experiments.md)
+    align_depth_time: bool = False
+    depth_time_lag: float = 0.0
     checkpoint_every: int = 10  # frames between job checkpoints (and on SIGTERM/SIGUSR1/SIGINT)
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -328,6 +337,7 @@ RANGES: dict[str, Range] = {
     "threads": Range(1, 512),
     "crop_edge": NON_NEGATIVE,  # and less than half the image (`check_crop`, per store)
     "max_depth": POSITIVE,
+    "depth_time_lag": Range(-1, 1),  # s; either sensor may lag the other
     "checkpoint_every": COUNT,
     "uncertainty.initial_logit": ANY,
     "uncertainty.map_floor": POSITIVE,

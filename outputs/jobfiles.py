@@ -50,14 +50,24 @@ class FrameEvent:
     c2w: np.ndarray  # (4, 4) float64, as estimated when the frame was processed (loop closure
     # may correct it later: the final poses are in trajectory.txt, see `FinishedJob.final_poses`)
     elapsed_s: float | None
+    # the warp that moved the frame's depth image to its colour image's time (None: not moved)
+    depth_motion: np.ndarray | None = None
 
     @classmethod
     def from_json(cls, event: dict[str, Any]) -> FrameEvent:
-        c2w = np.eye(4)
-        c2w[:POSE_ROWS] = np.asarray(event["pose"], np.float64).reshape(POSE_ROWS, 4)
         return cls(int(event["frame"]), float(event["timestamp"]), bool(event["keyframe"]),
                    str(event["reason"]), event.get("score_color"), event.get("score_depth"),
-                   int(event["submap"]), c2w, event.get("elapsed_s"))  # fmt: skip
+                   int(event["submap"]), _rigid(event["pose"]), event.get("elapsed_s"),
+                   _rigid(event.get("depth_motion")))  # fmt: skip
+
+
+def _rigid(rows: list[float] | None) -> np.ndarray | None:
+    """A 4×4 rigid transform from its top three rows as logged (None stays None)."""
+    if rows is None:
+        return None
+    matrix = np.eye(4)
+    matrix[:POSE_ROWS] = np.asarray(rows, np.float64).reshape(POSE_ROWS, 4)
+    return matrix
 
 
 class FinishedJob:

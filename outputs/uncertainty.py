@@ -28,22 +28,13 @@ from functools import cached_property
 import numpy as np
 import torch
 
-from bgs_batch.config import Config
 from bgs_batch.errors import InputError
 from bgs_batch.render import Camera, Gaussians, render
-from bgs_batch.slam.frames import (
-    Level,
-    block_mean,
-    camera_for,
-    crop_and_clip,
-    downsample,
-    repeat_blocks,
-    to_level,
-)
+from bgs_batch.slam.frames import Level, block_mean, downsample, prepare_frame, repeat_blocks
 from bgs_batch.slam.losses import predictive_variances
 from bgs_batch.slam.mapping import Keyframe
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
-from bgs_batch.store import Frame, FrameStore
+from bgs_batch.store import FrameStore
 from outputs.jobfiles import FinishedJob
 
 # the depth variances whose depth AUSE the benchmark compares (see `FrameUncertainty`)
@@ -99,15 +90,6 @@ class FrameUncertainty:
                 "sensor": self.var_depth_sensor, "varsplat": self.var_color_map}  # fmt: skip
 
 
-def prepare_levels(frame: Frame, intrinsics: np.ndarray, cfg: Config) -> tuple[Level, Level]:
-    """The frame at input resolution (cropped, depth clipped) and at mapping resolution: the
-    same steps as `Slam.prepare`."""
-    rgb, depth = crop_and_clip(frame.rgb, frame.depth, cfg.crop_edge, cfg.max_depth)
-    camera = camera_for(intrinsics, rgb.shape[1], rgb.shape[0], cfg.crop_edge)
-    full = to_level(rgb, depth, camera)
-    return full, downsample(full, cfg.mapping.downscale)
-
-
 def check_downscale(downscale: int, mapping_downscale: int) -> None:
     """`downscale` must be a multiple or a divisor of the run's mapping downscale."""
     if downscale < 1 or (downscale % mapping_downscale and mapping_downscale % downscale):
@@ -161,7 +143,8 @@ class UncertaintyRenderer:
     def frame(self, index: int) -> FrameUncertainty:
         """Everything of frame `index` (see the module's conventions)."""
         event = self.job.events[index]
-        full, mapping = prepare_levels(self.store[index], self.store.intrinsics, self.cfg)
+        full, mapping = prepare_frame(self.store[index], self.store.intrinsics, self.cfg,
+                                      event.depth_motion)  # fmt: skip
         level = downsample(full, self.downscale)
         height, width = level.rgb.shape[:2]
         u = self.cfg.uncertainty

@@ -12,7 +12,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from bgs_batch.config import Config
 from bgs_batch.render import Camera
+from bgs_batch.slam.depth_timing import warp_depth
+from bgs_batch.store import Frame
 
 
 @dataclass(frozen=True)
@@ -22,6 +25,20 @@ class Level:
     rgb: torch.Tensor
     depth: torch.Tensor
     camera: Camera
+
+
+def prepare_frame(frame: Frame, intrinsics: np.ndarray, cfg: Config,
+                  depth_motion: np.ndarray | None = None) -> tuple[Level, Level]:  # fmt: skip
+    """The frame at input resolution (its depth moved by `depth_motion` to the colour image's
+    time, `depth_timing`; then cropped by ``crop_edge``, depth clipped) and at mapping
+    resolution: what the SLAM and the exports see of a frame."""
+    crop = cfg.crop_edge or 0  # `run_job` puts the store's crop in place of None
+    depth = frame.depth
+    if depth_motion is not None:
+        depth = warp_depth(depth, intrinsics, depth_motion)
+    rgb, depth = crop_and_clip(frame.rgb, depth, crop, cfg.max_depth)
+    full = to_level(rgb, depth, camera_for(intrinsics, rgb.shape[1], rgb.shape[0], crop))
+    return full, downsample(full, cfg.mapping.downscale)
 
 
 def crop_and_clip(rgb: np.ndarray, depth: np.ndarray, crop: int, max_depth: float

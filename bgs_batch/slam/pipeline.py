@@ -21,7 +21,8 @@ import torch
 from bgs_batch.atomic import save_torch
 from bgs_batch.config import Config
 from bgs_batch.slam.adam import Adam
-from bgs_batch.slam.frames import Level, camera_for, crop_and_clip, downsample, to_level
+from bgs_batch.slam.depth_timing import depth_motion
+from bgs_batch.slam.frames import Level, prepare_frame
 from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY, GaussianMap
 from bgs_batch.slam.keyframes import KeyframeSelector
 from bgs_batch.slam.loop_closure import LoopCloser, inject_drift
@@ -67,6 +68,10 @@ class Slam:
     intrinsics: np.ndarray
     submap_dir: Path
     poses: list[np.ndarray] = field(default_factory=list)
+    timestamps: list[float] = field(default_factory=list)  # of the frames tracked so far
+    # per keyframe, the warp that moved its depth image to its colour image's time (frames
+    # without one had nothing to move): keyframes are re-read on resume and for refinement
+    depth_motions: dict[int, np.ndarray] = field(default_factory=dict)
     submaps: list[SubmapRecord] = field(default_factory=list)
     keyframe_frames: list[int] = field(default_factory=list)
     mapping_calls: int = 0
@@ -90,25 +95,25 @@ class Slam:
         # to the velocity (None: the previous pose itself)
         self.drifted_prev: np.ndarray | None = None
 
-    def prepare(self, frame: Frame) -> tuple[Level, Level]:
-        """The frame at input resolution (cropped, depth clipped) and at mapping resolution."""
-        cfg = self.cfg
-        crop = cfg.crop_edge or 0  # `run_job` puts the store's crop in place of None
-        rgb, depth = crop_and_clip(frame.rgb, frame.depth, crop, cfg.max_depth)
-        camera = camera_for(self.intrinsics, rgb.shape[1], rgb.shape[0], crop)
-        full = to_level(rgb, depth, camera)
-        return full, downsample(full, cfg.mapping.downscale)
+    def prepare(self, frame: Frame, depth_motion: np.ndarray | None = None
+                ) -> tuple[Level, Level]:  # fmt: skip
+        """The frame at input resolution and at mapping resolution (`frames.prepare_frame`)."""
+        return prepare_frame(frame, self.intrinsics, self.cfg, depth_motion)
 
     def process(self, frame: Frame) -> dict[str, Any]:
         """Track, select and map one frame; return its log event (steps 1-5 of `bgs_batch.slam`)."""
         totals_before = asdict(self.timings)
-        full, level = self.prepare(frame)
+        motion = self._depth_motion(frame)
+        full, level = self.prepare(frame, motion)
         event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
+        if motion is not None:  # the exports prepare the frame the same way from the log
+            event["depth_motion"] = [float(x) for x in motion[:3].ravel()]
         with self.timings.measure("sensor"), torch.no_grad():
             scale = self.cfg.uncertainty.sensor_downscale
             sensor_c, sensor_d = self.sensor(level, scale)
         c2w, score_c, score_d = self._track(full, sensor_c, sensor_d, event)
         self.poses.append(c2w)
+        self.timestamps.append(frame.timestamp)
         first_of_submap = not self.active_keyframes
         if not first_of_submap and self._should_switch(frame.index, c2w):
             c2w = self._switch_submap(frame.index, event)
@@ -116,11 +121,24 @@ class Slam:
         decision = self.selector.decide(frame.index, score_c, score_d, first_of_submap)
         event.update(decision.as_dict())
         if decision.keyframe:
+            if motion is not None:
+                self.depth_motions[frame.index] = motion
             self._add_keyframe(frame.index, full, level, c2w, first_of_submap, event)
         event.update(submap=len(self.submaps), gaussians=len(self.gmap),
                      pose=[float(x) for x in c2w[:3].ravel()],
                      stage_s=self._stages_since(totals_before))  # fmt: skip
         return event
+
+    def _depth_motion(self, frame: Frame) -> np.ndarray | None:
+        """The warp of this frame's depth image to its colour image's time, from the velocity
+        of the last frame interval and the stamps' gap less `depth_time_lag`
+        (`align_depth_time`; None: nothing to move)."""
+        cfg = self.cfg
+        if not cfg.align_depth_time or frame.depth_timestamp is None or len(self.timestamps) < 2:
+            return None
+        before2 = self.poses[-2] if self.drifted_prev is None else self.drifted_prev
+        return depth_motion(before2, self.poses[-1], self.timestamps[-1] - self.timestamps[-2],
+                            frame.depth_time_offset - cfg.depth_time_lag)  # fmt: skip
 
     def _track(self, full: Level, sensor_c: torch.Tensor, sensor_d: torch.Tensor,
                event: dict[str, Any]) -> tuple[np.ndarray, float | None, float | None]:  # fmt: skip
@@ -223,6 +241,8 @@ class Slam:
         poses = np.stack(self.poses) if self.poses else np.zeros((0, 4, 4))
         return {
             "poses": torch.from_numpy(poses),
+            "timestamps": list(self.timestamps),
+            "depth_motions": {i: torch.from_numpy(m) for i, m in self.depth_motions.items()},
             "submaps": [asdict(s) for s in self.submaps],
             "keyframe_frames": list(self.keyframe_frames),
             "mapping_calls": self.mapping_calls,
@@ -244,14 +264,17 @@ class Slam:
     def load_state_dict(self, state: dict[str, Any], read_frame: Callable[[int], Frame]) -> None:
         """Restore `state_dict`; `read_frame(i)` re-reads keyframe i of the active submap."""
         self.poses = [np.ascontiguousarray(p) for p in state["poses"].numpy()]
+        # absent in checkpoints older than align_depth_time: their runs did not move depth
+        self.timestamps = [float(t) for t in state.get("timestamps", [])]
+        self.depth_motions = {int(i): np.ascontiguousarray(m.numpy())
+                              for i, m in state.get("depth_motions", {}).items()}  # fmt: skip
         self.submaps = [SubmapRecord(**s) for s in state["submaps"]]
         self.keyframe_frames = list(state["keyframe_frames"])
         self.mapping_calls = int(state["mapping_calls"])
         self.timings = Timings(**state["timings"])
         self.gmap = GaussianMap.from_state_dict(state["gmap"])
         self.active_keyframes = [
-            Keyframe(i, self.prepare(read_frame(i))[1], self.poses[i])
-            for i in state["active_keyframes"]
+            self._reread_keyframe(i, read_frame) for i in state["active_keyframes"]
         ]
         self.submap_first_frame = int(state["submap_first_frame"])
         self.sensor.load_state_dict(state["sensor"])
@@ -265,6 +288,11 @@ class Slam:
             self.loop_closer.load_state_dict(state["loop_closure"])
         drifted = state.get("drifted_prev")
         self.drifted_prev = None if drifted is None else np.ascontiguousarray(drifted.numpy())
+
+    def _reread_keyframe(self, index: int, read_frame: Callable[[int], Frame]) -> Keyframe:
+        """Keyframe `index` from the store, prepared as when it was mapped."""
+        level = self.prepare(read_frame(index), self.depth_motions.get(index))[1]
+        return Keyframe(index, level, self.poses[index])
 
     def finish(self, read_frame: Callable[[int], Frame]) -> None:
         """Write the last submap too (LoopSplat drops it; its frames deserve a map), then refine
@@ -295,7 +323,6 @@ class Slam:
         """`Mapper.refine_uncertainty` on a frozen submap (at its final pose), starting from the
         r_i as mapped, so that a repeated call gives the same result."""
         gmap = GaussianMap.from_state_dict(load_mapped(record.path))
-        keyframes = [Keyframe(i, self.prepare(read_frame(i))[1], self.poses[i])
-                     for i in record.keyframes]  # fmt: skip
+        keyframes = [self._reread_keyframe(i, read_frame) for i in record.keyframes]
         self.mapper.refine_uncertainty(gmap, keyframes)
         write_uncertainty(record.path, gmap.params[UNCERTAINTY_KEY].detach())

@@ -15,7 +15,7 @@ from click.testing import CliRunner
 
 from bgs_batch.cli import main
 from bgs_batch.config import load_config
-from bgs_batch.slam import Slam
+from bgs_batch.slam.frames import prepare_frame
 from bgs_batch.store import FrameStore
 from converters.pipeline import write_store
 from converters.synthetic import SynthConfig, synthesize
@@ -23,7 +23,7 @@ from converters.tum import TumOptions, convert_tum, plan_tum
 from outputs.ause import colour_sparsification
 from outputs.jobfiles import FinishedJob
 from outputs.lpips import Lpips
-from outputs.uncertainty import UncertaintyRenderer, prepare_levels
+from outputs.uncertainty import UncertaintyRenderer
 from outputs.uncertainty_images import QUANTITIES
 
 SIZE = (96, 72)
@@ -49,7 +49,9 @@ def finished(tmp_path_factory):
                                                   seed=2))  # fmt: skip
     store = convert_tum(folder, root / "seq.h5")
     job = root / "job"
-    result = run(*run_args(store, job))
+    # the synthetic depth is taken 4 ms after the colour: the exports must prepare the frames
+    # as the run did, depth moved to the colour's time
+    result = run(*run_args(store, job, "--set", "align_depth_time=true"))
     assert result.exit_code == 0, result.output
     return store, job
 
@@ -175,18 +177,20 @@ def test_uncertainty_h5_and_pngs_of_the_run(finished):
         assert names == [f"{i:06d}.png" for i in frames]
 
 
-def test_renderer_prepares_frames_as_the_slam_and_upsamples_the_sensor_term(finished, tmp_path):
+def test_renderer_prepares_frames_as_the_slam_and_upsamples_the_sensor_term(finished):
     store, job = finished
     finished_job = FinishedJob(job)
     cfg = finished_job.config
     with FrameStore(store) as opened:
         frame = opened[3]
-        slam = Slam(cfg, opened.intrinsics, tmp_path)
-        for ours, slams in zip(prepare_levels(frame, opened.intrinsics, cfg), slam.prepare(frame),
-                               strict=True):  # fmt: skip
-            assert torch.equal(ours.rgb, slams.rgb) and torch.equal(ours.depth, slams.depth)
-            assert ours.camera == slams.camera
+        # the run moved the depth to the colour's time, and logged how
+        motion = finished_job.events[3].depth_motion
+        assert cfg.align_depth_time and frame.depth_time_offset > 0 and motion is not None
+        as_mapped = prepare_frame(frame, opened.intrinsics, cfg, motion)[0].depth[..., 0].numpy()
+        as_stored = prepare_frame(frame, opened.intrinsics, cfg)[0].depth[..., 0].numpy()
         full = UncertaintyRenderer(finished_job, opened, downscale=1).frame(3)
+        np.testing.assert_array_equal(full.measured_depth, as_mapped)
+        assert not np.array_equal(full.measured_depth, as_stored)
         coarse = UncertaintyRenderer(finished_job, opened).frame(3)
     assert full.var_depth.shape == (SIZE[1], SIZE[0])
     block = cfg.mapping.downscale * cfg.uncertainty.sensor_downscale
