@@ -30,7 +30,10 @@ SIZE = (96, 72)
 FRAMES = 8
 TINY = ["tracking.iterations=8", "mapping.iterations=4", "mapping.new_submap_iterations=8",
         "seeding.new_submap_points=2000", "seeding.new_submap_gradient_points=500",
-        "seeding.new_frame_points=500", "keyframes.max_gap=3"]  # fmt: skip
+        "seeding.new_frame_points=500", "keyframes.max_gap=3",
+        # the synthetic depth is taken 4 ms after the colour: the exports must prepare the
+        # frames as the run did, depth moved to the colour's time
+        "align_depth_time=true"]  # fmt: skip
 
 
 def run(*args):
@@ -49,9 +52,7 @@ def finished(tmp_path_factory):
                                                   seed=2))  # fmt: skip
     store = convert_tum(folder, root / "seq.h5")
     job = root / "job"
-    # the synthetic depth is taken 4 ms after the colour: the exports must prepare the frames
-    # as the run did, depth moved to the colour's time
-    result = run(*run_args(store, job, "--set", "align_depth_time=true"))
+    result = run(*run_args(store, job))
     assert result.exit_code == 0, result.output
     return store, job
 
