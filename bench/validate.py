@@ -1,7 +1,7 @@
 """The validation suite: the `cpu` preset beside Open3D's dense SLAM on recordings nobody tunes on.
 
 Usage: .venv/bin/python bench/validate.py [--seeds N] [--only NAME ...] [--set KEY=VALUE ...]
-       [--max-frames N]
+       [--max-frames N] [--keep DIR]
 
 A change to tracking, mapping or a preset counts only when it holds here, on every sequence and
 over seeds, not only on the dev excerpt it was tried on. The sequences:
@@ -281,7 +281,11 @@ def main() -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE", help="settings to validate (repeatable)")  # fmt: skip
     parser.add_argument("--max-frames", type=int, help="only the first N frames (quick trials)")
+    parser.add_argument("--keep", type=Path, metavar="DIR",
+                        help="keep the stores and jobs in DIR, a new folder")  # fmt: skip
     args = parser.parse_args()
+    if args.keep and args.keep.exists() and any(args.keep.iterdir()):
+        sys.exit(f"bench/validate.py: {args.keep} is not empty (--keep needs a new folder)")
     try:  # a bad override fails now, not after the first runs
         load_config("cpu", args.overrides)
     except ConfigError as err:
@@ -290,7 +294,8 @@ def main() -> None:
     print(f"bench/validate.py: cpu preset ({settings}), seeds 0-{args.seeds - 1}, beside "
           "Open3D's dense SLAM (TSDF 1 cm)", flush=True)  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
-        root = Path(tmp)
+        root = args.keep or Path(tmp)
+        root.mkdir(parents=True, exist_ok=True)
         stores = make_stores(root, args.only, args.max_frames)
         results = [run_sequence(name, store, root, args.seeds, args.overrides)
                    for name, store in stores.items()]  # fmt: skip
