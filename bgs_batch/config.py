@@ -272,6 +272,18 @@ class LoopClosureConfig:
 
 
 @dataclass
+class SmoothingConfig:
+    """Fixed-interval smoothing of the reported trajectory (`bgs_batch.slam.smoothing`): a
+    constant-velocity model whose noise ratio is the tracked trajectory's own maximum-likelihood
+    value, searched over log10(q / r) (q in units²/s³, r in units²) on this grid."""
+
+    enabled: bool = False
+    log_ratio_min: float = -2.0  # a smooth path even at 1 s scales ...
+    log_ratio_max: float = 10.0  # ... to no smoothing at 30 frames/s (q·dt³/3 ≫ r)
+    log_ratio_step: float = 0.25
+
+
+@dataclass
 class Config:
     """A whole SLAM run."""
 
@@ -299,6 +311,7 @@ class Config:
     submaps: SubmapConfig = field(default_factory=SubmapConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -452,6 +465,9 @@ RANGES: dict[str, Range] = {
     "loop_closure.information_prior": NON_NEGATIVE,
     "loop_closure.inject_drift_deg": ANY,  # a test lever: either direction
     "loop_closure.inject_drift_m": ANY,
+    "smoothing.log_ratio_min": ANY,
+    "smoothing.log_ratio_max": ANY,  # and above the minimum (`check`)
+    "smoothing.log_ratio_step": POSITIVE,
 }
 
 
@@ -492,6 +508,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         # spread each loop correction along the frames instead of stepping at submap switches
         "loop_closure.trajectory_correction": "continuous",
         "loop_closure.min_submaps": 2,
+        # report every pose given the frames after it too (a batch run has them all): a
+        # constant-velocity smoother at the tracked trajectory's own maximum-likelihood noise
+        "smoothing.enabled": True,
         "seeding.new_submap_points": 30_000,
         "seeding.new_submap_gradient_points": 15_000,
         "seeding.new_frame_points": 10_000,
@@ -529,6 +548,10 @@ def check(config: Config) -> None:
     if u.sensor_initial and u.sensor_initial <= u.sensor_min:
         raise ConfigError(f"uncertainty.sensor_initial={u.sensor_initial} must exceed "
                           f"uncertainty.sensor_min={u.sensor_min} (or be 0 for the default init)")
+    sm = config.smoothing
+    if sm.log_ratio_max < sm.log_ratio_min:
+        raise ConfigError(f"smoothing.log_ratio_max={sm.log_ratio_max} is below "
+                          f"smoothing.log_ratio_min={sm.log_ratio_min}")
 
 
 def for_store(config: Config, recommended_crop: int, store: str) -> tuple[Config, dict[str, str]]:

@@ -52,6 +52,8 @@ class RunSummary:
     fps: float
     stage_seconds: dict[str, float]
     ate_rmse_m: float | None
+    # the smoother's maximum-likelihood noise of the tracked trajectory (`smoothing.enabled`)
+    trajectory_smoothing: dict[str, float] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -145,7 +147,7 @@ def _run(
         slam.finish(store.__getitem__)
         save_torch(slam.sensor.state_dict(), job_dir / "sensor_net.pt")
         timestamps = store.timestamps[:n]
-        poses = slam.trajectory()
+        poses, smoothing = slam.trajectory()
         gt = store.poses_gt[:n] if store.has_gt else None
     with atomic_file(job_dir / "trajectory.txt") as tmp:
         write_tum(tmp, timestamps, poses)
@@ -160,6 +162,7 @@ def _run(
         fps=n / seconds,
         stage_seconds=asdict(slam.timings),
         ate_rmse_m=ate_rmse,
+        trajectory_smoothing=smoothing.as_dict() if smoothing else None,
     )
     write_text(job_dir / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2))
     return summary

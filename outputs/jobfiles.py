@@ -18,6 +18,7 @@ import torch
 from bgs_batch.config import Config, config_from_dict
 from bgs_batch.errors import InputError
 from bgs_batch.slam.gaussian_map import PARAMS
+from bgs_batch.slam.loop_closure.correction import CORRECTION_KEY
 from bgs_batch.store import FrameStore
 from jobs.jobdir import JOB_FILE, lock_owner_alive
 from jobs.run import LOG_FILE, SUBMAP_DIR, SUMMARY_FILE
@@ -142,16 +143,23 @@ class FinishedJob:
             raise incomplete(self.job_dir, f"{TRAJECTORY_FILE} holds no poses")
         return timestamps, poses
 
-    def final_poses(self) -> np.ndarray:
-        """Camera-to-world pose of every frame of the log (N, 4, 4) as the run ended: from
-        ``trajectory.txt``, which holds any loop-closure correction, matched by timestamp."""
-        timestamps, poses = self.trajectory()
-        stamps = np.array([e.timestamp for e in self.events])
-        index = match_timestamps(stamps, timestamps)
-        if np.any(index < 0):
-            missing = int(np.flatnonzero(index < 0)[0])
-            raise incomplete(self.job_dir, f"{TRAJECTORY_FILE} has no pose for frame {missing}")
-        return poses[index]
+    def mapped_poses(self) -> np.ndarray:
+        """Camera-to-world pose of every frame of the log (N, 4, 4) in the map as saved: the
+        pose it was tracked at, moved by its submap's loop-closure correction. Each submap was
+        fitted to its keyframes at these poses, so the map is rendered from them;
+        ``trajectory.txt`` reports the trajectory, which may spread the corrections along the
+        frames and be smoothed (`loop_closure.trajectory_correction`, `smoothing`)."""
+        paths = self.submap_paths()
+        corrections = [self._submap_file(path).get(CORRECTION_KEY) for path in paths]
+        poses = []
+        for event in self.events:
+            if event.submap >= len(paths):
+                raise InputError(f"{self.job_dir}: {LOG_FILE} names submap {event.submap}, "
+                                 f"but {SUBMAP_DIR}/ holds {len(paths)} files; the job is "
+                                 "damaged")  # fmt: skip
+            correction = corrections[event.submap]
+            poses.append(event.c2w if correction is None else correction.numpy() @ event.c2w)
+        return np.stack(poses)
 
     def submap_paths(self) -> list[Path]:
         paths = sorted((self.job_dir / SUBMAP_DIR).glob("*.pt"))
@@ -161,12 +169,20 @@ class FinishedJob:
 
     def submap_params(self, path: Path) -> dict[str, torch.Tensor]:
         """The Gaussian parameters (`GaussianMap` layout) of one submap file."""
+        params = self._submap_file(path)["params"]
         try:
-            params = torch.load(path, weights_only=True)["params"]
             return {name: params[name] for name in PARAMS}
+        except (KeyError, TypeError) as err:
+            raise incomplete(self.job_dir, f"{path.name} lacks a parameter ({err})") from err
+
+    def _submap_file(self, path: Path) -> dict[str, Any]:
+        try:
+            data = torch.load(path, weights_only=True)
         except Exception as err:  # torch.load raises many types (IndexError too) on damaged files
-            raise incomplete(self.job_dir, f"{path.name} is unreadable or lacks a parameter "
-                             f"({err})") from err  # fmt: skip
+            raise incomplete(self.job_dir, f"{path.name} is unreadable ({err})") from err
+        if not isinstance(data, dict) or not isinstance(data.get("params"), dict):
+            raise incomplete(self.job_dir, f"{path.name} lacks the Gaussian parameters")
+        return data
 
     def sensor_state(self) -> dict[str, torch.Tensor]:
         """The trained sensor-noise network's state dict."""

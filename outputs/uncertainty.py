@@ -116,18 +116,13 @@ class UncertaintyRenderer:
             raise InputError(f"{job.job_dir}/sensor_net.pt does not fit the run's sensor "
                              f"network ({err})") from err  # fmt: skip
         self.sensor.eval()
-        self.poses = job.final_poses()
+        self.poses = job.mapped_poses()
         self._submap: tuple[int, Gaussians] | None = None
 
     def _gaussians(self, submap: int) -> Gaussians:
         """The submap's Gaussians (the last one used is kept: frames come in submap order)."""
-        if self._submap is None or self._submap[0] != submap:
+        if self._submap is None or self._submap[0] != submap:  # `mapped_poses` checked `submap`
             paths = self.job.submap_paths()
-            if submap >= len(paths):
-                raise InputError(
-                    f"{self.job.job_dir}: log.jsonl names submap {submap}, but "
-                    f"submaps/ holds {len(paths)} files; the job is damaged"
-                )
             self._submap = (submap, Gaussians(**self.job.submap_params(paths[submap])))
         return self._submap[1]
 

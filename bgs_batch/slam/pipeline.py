@@ -33,6 +33,7 @@ from bgs_batch.slam.loop_closure.correction import (
 )
 from bgs_batch.slam.mapping import Keyframe, Mapper
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.smoothing import SmoothingReport, smooth_trajectory
 from bgs_batch.slam.submaps import SubmapRecord, exceeds_motion
 from bgs_batch.slam.tracking import Tracker, constant_velocity
 from bgs_batch.store import Frame
@@ -308,16 +309,19 @@ class Slam:
                 for record in self.submaps:
                     self._refine_submap(record, read_frame)
 
-    def trajectory(self) -> np.ndarray:
+    def trajectory(self) -> tuple[np.ndarray, SmoothingReport | None]:
         """The camera-to-world poses (N, 4, 4) to report: as tracked and corrected, with the
         loop corrections spread along the frames when `loop_closure.trajectory_correction` is
-        "continuous" (the submaps themselves stay rigidly corrected)."""
+        "continuous" (the submaps themselves stay rigidly corrected), then smoothed over the
+        frames when `smoothing.enabled` (with the noise the smoother estimated)."""
         poses = np.stack(self.poses)
         lc = self.cfg.loop_closure
-        if not (lc.enabled and lc.trajectory_correction == "continuous") or not self.submaps:
-            return poses
-        spans = [(r.first_frame, r.last_frame) for r in self.submaps]
-        return continuous_poses(poses, spans, self.loop_closer.chain_corrections(len(spans)))
+        if lc.enabled and lc.trajectory_correction == "continuous" and self.submaps:
+            spans = [(r.first_frame, r.last_frame) for r in self.submaps]
+            poses = continuous_poses(poses, spans, self.loop_closer.chain_corrections(len(spans)))
+        if not self.cfg.smoothing.enabled:
+            return poses, None
+        return smooth_trajectory(poses, np.array(self.timestamps), self.cfg.smoothing)
 
     def _refine_submap(self, record: SubmapRecord, read_frame: Callable[[int], Frame]) -> None:
         """`Mapper.refine_uncertainty` on a frozen submap (at its final pose), starting from the

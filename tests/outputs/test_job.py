@@ -87,6 +87,19 @@ def test_run_exports_once_by_default(finished):
     assert (out / "metrics.json").stat().st_mtime_ns == before
 
 
+def test_the_cpu_preset_reports_the_noise_its_smoother_estimated(finished):
+    _, job = finished
+    fit = json.loads((job / "summary.json").read_text())["trajectory_smoothing"]
+    assert set(fit) == {"position_log10_ratio", "position_noise_m", "rotation_log10_ratio",
+                        "rotation_noise_deg"}  # fmt: skip
+    assert 0 < fit["position_noise_m"] < 0.05 and 0 < fit["rotation_noise_deg"] < 5
+    # the exports render the map from the poses it was made with, not the smoothed ones
+    finished_job = FinishedJob(job)
+    logged = np.stack([e.c2w for e in finished_job.events])
+    np.testing.assert_array_equal(finished_job.mapped_poses(), logged)  # no loop correction
+    assert not np.allclose(finished_job.trajectory()[1], logged, atol=1e-6)
+
+
 def test_metrics_json_states_values_and_conventions(finished):
     _, job = finished
     metrics = json.loads((job / "outputs/metrics.json").read_text())
