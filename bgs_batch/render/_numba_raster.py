@@ -351,8 +351,8 @@ def lane_sum(values, p0, p1, partial):
 @numba.njit(parallel=True, cache=True, fastmath=FASTMATH)
 def raster_bwd(
     means2d, conics, opacities, feats, variances, rects, tile_start, isect_gauss,
-    xs, ys, consts, n_chunks, full_grad, want_appearance, out_feat, out_trans, out_dvdf, out_last,
-    grad_feat, grad_alpha, grad_var, slots,
+    xs, ys, consts, n_chunks, full_grad, want_appearance, variance_only, out_feat, out_trans,
+    out_dvdf, out_last, grad_feat, grad_alpha, grad_var, slots,
 ):  # fmt: skip
     """Back-to-front vector-Jacobian product of :func:`raster_fwd`, one slot per intersection.
 
@@ -360,7 +360,9 @@ def raster_bwd(
     (mean x, mean y, conic a, b, c, opacity, features ×4, v). ``full_grad`` adds the dependence
     of ``T_i²`` in the variances on the alphas in front of Gaussian i (dropped by the authors).
     Without ``want_appearance`` (pose-only tracking) the colour, opacity and ``v`` entries are
-    left at zero: only the geometry entries and the depth feature reach the pose.
+    left at zero: only the geometry entries and the depth feature reach the pose. With
+    ``variance_only`` (the end-of-run refinement: only ``v`` learns) every entry but ``v`` is
+    left at zero, and ``v``'s is the one the full pass computes, bit for bit.
 
     Like the forward, each Gaussian is processed over the tile-wide rows of its bounding box by
     branch-free loops over lanes (masks as selects; masked lanes contribute exact zeros); each
@@ -449,6 +451,20 @@ def raster_bwd(
                 for j in range(p0, p1):
                     weights[j] = alphas[j] * trans[j]
                     squares[j] = trans[j] * trans[j] if alphas[j] > zero else zero
+                if variance_only:  # ∂L/∂v_i = Σ T_i² q_i, summed as below
+                    for j in range(p0, p1):
+                        q_var[j] = zero
+                    for ch in range(N_FEAT):
+                        f = feats[g, ch]
+                        for j in range(p0, p1):
+                            d = f - fin[ch, j]
+                            q_var[j] += g_v[ch, j] * d * d
+                    for j in range(p0, p1):
+                        terms[j] = squares[j] * q_var[j]
+                    for e in range(N_SLOT):
+                        slots[k, e] = zero
+                    slots[k, S_VAR] = lane_sum(terms, p0, p1, partial)
+                    continue
                 for j in range(p0, p1):
                     moments[j] = v * squares[j]
                     q_var[j] = zero

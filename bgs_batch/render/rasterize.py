@@ -166,8 +166,10 @@ class _RasterizeNumba(torch.autograd.Function):
             grads_in.append(buf)
         slots = scratch("slots", (ctx.kernel_args[7].shape[0], nr.N_SLOT), feats.dtype)
         want_appearance = any(ctx.needs_input_grad[3:6])  # else pose-only tracking
+        variance_only = not any(ctx.needs_input_grad[:5])  # the uncertainty refinement
         nr.raster_bwd(
-            *ctx.kernel_args, ctx.full_grad, want_appearance, *ctx.saved, grads_in[0],
+            *ctx.kernel_args, ctx.full_grad, want_appearance, variance_only, *ctx.saved,
+            grads_in[0],
             to_numpy(g_alpha[..., 0]), grads_in[1], slots,
         )  # fmt: skip
         grads = np.empty((feats.shape[0], nr.N_SLOT), feats.dtype)

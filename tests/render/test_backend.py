@@ -141,6 +141,23 @@ def test_pose_only_gradient_equals_full_path(dtype, full_grad):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("full_grad", [True, False])
+def test_variance_only_gradient_equals_full_path(dtype, full_grad):
+    """The uncertainty refinement (only the r_i require grad) skips every other gradient; the
+    r_i's gradient must be bitwise the one of the full path."""
+    g = Gaussians(*(t.to(dtype) for t in vars(random_gaussians(200, seed=9)).values()))
+    grads = []
+    for others_grad in (True, False):
+        params = {n: t.clone().requires_grad_(others_grad) for n, t in vars(g).items()}
+        params["uncertainty_logits"].requires_grad_(True)
+        out = render(Gaussians(**params), se3_exp(torch.zeros(6, dtype=dtype)), CAMERA,
+                     full_grad=full_grad)  # fmt: skip
+        grads.append(random_vjp(out, [params["uncertainty_logits"]], seed=3)[0])
+    assert grads[0].abs().max() > 0
+    assert torch.equal(grads[0], grads[1])
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_shape_matrices_closed_form(dtype):
     g = random_gaussians(300, seed=4)
     shapes = shape_matrices(g.log_scales.to(dtype), g.quats.to(dtype))
