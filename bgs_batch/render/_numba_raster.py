@@ -2,15 +2,22 @@
 
 Layout: ``feats[M, 4]`` holds RGB and the camera depth of each Gaussian, so colour and depth are
 composited by the same loop. Work is split over screen tiles of ``TILE_SIZE`` pixels; within a
-tile the Gaussians (depth sorted) form the outer loop. Both passes visit the tile-wide rows of
-each Gaussian's opacity-aware bounding box with branch-free loops that LLVM vectorises; the
-backward walks each tile back to front and writes one gradient slot per (tile, Gaussian)
-intersection; :func:`reduce_slots` sums the slots of each Gaussian in a fixed order, so results
-never depend on the thread count.
+tile the Gaussians (depth sorted) form the outer loop. For each, both passes run one fused,
+branch-free loop over the tile-wide rows of its opacity-aware bounding box that LLVM vectorises
+(:func:`blend_span`, :func:`unblend_span`); the backward walks each tile back to front and
+writes one gradient slot per (tile, Gaussian) intersection; :func:`reduce_slots` sums the slots
+of each Gaussian in a fixed order, so results never depend on the thread count.
 
-Lane ranges ``p0:p1`` are unsigned (``np.uint64``) and index the per-tile arrays directly:
-numba wraps negative signed indices with a select that stops LLVM from vectorising, and a slice
-per range would cost two atomic reference-count updates.
+What keeps the fused loops vectorised (each was measured to stop it):
+- every per-lane field of a tile lives in one flat array at constant offsets
+  (:func:`lane_buffer`), so LLVM proves the accesses independent without run-time alias checks;
+- lane ranges ``p0:p1`` are unsigned (``np.uint64``): numba wraps negative signed indices with a
+  select, and a slice per range would cost two atomic reference-count updates;
+- the loops live in serial functions with numpy's error model: Python's adds a zero-division
+  check (an early exit) to every division, and a parallel kernel's body keeps Python's;
+- every load is unconditional and every choice a select of computed values; the float32
+  ``e^-σ`` is chosen at compile time (:func:`exp_neg`); no 64-bit reduction in the float32
+  loops (it halves the vector width).
 
 Work is dealt round-robin to ``n_chunks`` parallel chunks (pass ``numba.get_num_threads()``);
 the chunking never changes a result. All floating-point constants enter through the typed
@@ -22,6 +29,7 @@ import math
 
 import numba
 import numpy as np
+from numba.extending import overload
 
 from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
 
@@ -59,13 +67,15 @@ def raster_consts(dtype: np.dtype) -> np.ndarray:
     return np.array(values, dtype=dtype)
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
-def exp_neg(sigma, fast, consts):
-    """``e^-σ`` for ``0 ≤ σ ≤ SIGMA_MAX``: libm, or with ``fast`` (the float32 path) a
-    degree-7 Taylor polynomial at ``σ/16`` squared four times: branch and table free, so loops
-    over pixels vectorise (the libm call took ~40% of the scalar forward)."""
-    if not fast:
-        return math.exp(-sigma)
+def exp_neg(sigma, consts):
+    """``e^-σ`` for ``0 ≤ σ ≤ SIGMA_MAX``, chosen by σ's type when compiled: libm in float64, in
+    float32 a degree-7 Taylor polynomial at ``σ/16`` squared four times, branch and table free,
+    so loops over pixels vectorise (the libm call took ~40% of the scalar forward). A run-time
+    flag instead would keep both paths in the vectorised loops."""
+    return math.exp(-sigma)
+
+
+def _exp_neg_polynomial(sigma, consts):
     one = consts[K_ONE]
     x = -sigma * consts[K_EXP_SCALE]
     p = one
@@ -76,16 +86,11 @@ def exp_neg(sigma, fast, consts):
     return p
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
-def exp_neg_rows(values, p0, p1, fast, consts):
-    """``values[p0:p1] = e^-values[p0:p1]`` (see :func:`exp_neg`); the dtype test is outside
-    the loop, so the float32 loop vectorises."""
-    if fast:
-        for j in range(p0, p1):
-            values[j] = exp_neg(values[j], True, consts)
-    else:
-        for j in range(p0, p1):
-            values[j] = math.exp(-values[j])
+@overload(exp_neg, jit_options={"fastmath": FASTMATH})
+def _exp_neg_typed(sigma, consts):
+    if sigma == numba.types.float32:
+        return _exp_neg_polynomial
+    return exp_neg
 
 
 @numba.njit(cache=True)
@@ -175,15 +180,14 @@ def tile_box(tile, tiles_x, height, width):
 
 
 @numba.njit(cache=True, inline="always")
-def lanes_like(values):
-    """Scratch for one value per lane of a tile, of `values`' dtype."""
-    return np.empty(TILE_PIXELS, values.dtype)
+def lane_buffer(n_fields, values):
+    """Scratch for ``n_fields`` per-lane fields of a tile, of `values`' dtype, in one flat array.
 
-
-@numba.njit(cache=True, inline="always")
-def feature_lanes_like(values):
-    """Scratch for ``N_FEAT`` values per lane of a tile, of `values`' dtype."""
-    return np.empty((N_FEAT, TILE_PIXELS), values.dtype)
+    Field f of lane j is entry ``f·TILE_PIXELS + j``: one base pointer and constant distances,
+    so LLVM proves a fused loop's accesses independent and vectorises it without run-time
+    alias checks (a loop over many separate arrays gets too many checks and stays scalar).
+    """
+    return np.empty(n_fields * TILE_PIXELS, values.dtype)
 
 
 @numba.njit(cache=True, inline="always")
@@ -193,12 +197,13 @@ def index_lanes():
 
 
 @numba.njit(cache=True)
-def tile_lanes(xs, ys, px0, py0, lane_x, lane_y):
-    """Pixel coordinates of the ``TILE_PIXELS`` lanes (row major) of the tile at ``(px0, py0)``;
-    ``xs``, ``ys`` cover whole tiles, so lanes past the image border get coordinates too."""
+def tile_lanes(xs, ys, px0, py0, buf):
+    """Pixel coordinates of the ``TILE_PIXELS`` lanes (row major) of the tile at ``(px0, py0)``
+    into fields 0 (x) and 1 (y) of `buf`; ``xs``, ``ys`` cover whole tiles, so lanes past the
+    image border get coordinates too."""
     for p in range(TILE_PIXELS):
-        lane_x[p] = xs[px0 + p % TILE_SIZE]
-        lane_y[p] = ys[py0 + p // TILE_SIZE]
+        buf[p] = xs[px0 + p % TILE_SIZE]
+        buf[TILE_PIXELS + p] = ys[py0 + p // TILE_SIZE]
 
 
 @numba.njit(cache=True)
@@ -210,13 +215,99 @@ def lane_span(rects, g, py0, py1):
     return p0, p1
 
 
+def field(k):
+    """Unsigned offset of per-lane field k in a :func:`lane_buffer` (a compile-time constant)."""
+    return np.uint64(k * TILE_PIXELS)
+
+
+LANE_Y = field(1)
+"""Fields 0 and 1 of both passes: the lanes' pixel x and y (:func:`tile_lanes`)."""
+CH = field(1)
+"""Distance between the fields of consecutive features."""
+
+# The forward's other fields: transmittance, Σ v T², and per feature the composite, the shift
+# of the moments (the first contributor's feature) and the two shifted moments.
+FT, FS0 = field(2), field(3)
+FACC, FREF, FS1, FS2 = (field(4 + N_FEAT * k) for k in range(4))
+FWD_FIELDS = 4 + 4 * N_FEAT
+
+# The backward's: transmittance, ∂L/∂A · T_final, Σ_{j behind} w_j ⟨∂L/∂F, f_j⟩,
+# Σ_{j behind} q_j u_j, and per feature the final composite F, ∂L/∂F (with V's dependence on F)
+# and ∂L/∂V.
+BT, BFINAL, BBEHIND, BRSUM = (field(k) for k in range(2, 6))
+BFIN, BGFIN, BGV = (field(6 + N_FEAT * k) for k in range(3))
+BWD_FIELDS = 6 + 3 * N_FEAT
+
+
+def slot_lanes(e):
+    """Unsigned offset of slot entry e's lane partials in the backward's accumulator."""
+    return np.uint64(e * TILE_SIZE)
+
+
+A_MEAN_X, A_MEAN_Y, A_CONIC_A, A_CONIC_B, A_CONIC_C, A_OPACITY = (
+    slot_lanes(S_MEAN + e) for e in range(6)
+)
+A_FEAT, A_VAR = slot_lanes(S_FEAT), slot_lanes(S_VAR)
+
+
 @numba.njit(cache=True, fastmath=FASTMATH)
-def sigma_rows(lane_x, lane_y, p0, p1, mx, my, a, b, c, sigma_max, half, out):
-    """``out = min(σ, σ_max)`` with ``σ = ½(a dx² + c dy²) + b dx dy`` on lanes ``p0:p1``."""
+def gaussian_weight(dx, dy, a, b, c, consts):
+    """``e^-σ`` (see :func:`exp_neg`), ``σ = ½(a dx² + c dy²) + b dx dy`` capped at ``SIGMA_MAX``.
+
+    Scalars only: called inside the fused loops, where an array argument would bring
+    reference-count calls.
+    """
+    half = consts[K_HALF]
+    sigma = min(half * (a * dx * dx + c * dy * dy) + b * dx * dy, consts[K_SIGMA_MAX])
+    return exp_neg(sigma, consts)
+
+
+@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
+def blend_span(buf, done, last, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, consts):
+    """Forward, one intersection: blend Gaussian ``kk`` (opacity ``o``, variance ``v``, mean,
+    conic, features ``fs``, box columns ``x0..x1``) into lanes ``p0:p1`` of a tile, front to
+    back; returns how many lanes stopped (their transmittance would fall below ``T_MIN``).
+
+    One fused branch-free loop (masks as selects) that LLVM vectorises: lanes outside the box
+    contribute exact zeros. A function of its own for the error model: a parallel kernel's
+    loops keep Python's, whose division checks stop the vectoriser.
+    """
+    alpha_max, alpha_min, t_min = consts[K_ALPHA_MAX], consts[K_ALPHA_MIN], consts[K_T_MIN]
+    one, zero = consts[K_ONE], consts[K_ZERO]
+    mark = kk + 1  # done[j]: 0 while blending, else 1 + the intersection that stopped it
     for j in range(p0, p1):
-        dx = lane_x[j] - mx
-        dy = lane_y[j] - my
-        out[j] = min(half * (a * dx * dx + c * dy * dy) + b * dx * dy, sigma_max)
+        x = buf[j]
+        # every load unconditional, every choice a select of computed values
+        was_done, last_j, t_old = done[j], last[j], buf[FT + j]
+        e = gaussian_weight(x - mx, buf[LANE_Y + j] - my, a, b, c, consts)
+        alpha = min(alpha_max, o * e)
+        hit = (x >= x0) & (x <= x1) & (was_done == 0) & (alpha >= alpha_min)
+        alpha = alpha if hit else zero
+        t_new = t_old * (one - alpha)
+        # blend unless it would bring T below T_MIN; there the pixel stops
+        blend = (alpha > zero) & (t_new >= t_min)
+        stop = (alpha > zero) & (t_new < t_min)
+        done[j] = mark if stop else was_done
+        w = alpha * t_old if blend else zero  # α T, 0 where not blended
+        m = v * t_old * t_old if blend else zero  # v T², 0 where not blended
+        # the first contributor's feature is the shift of the moments; the shift is 0 before
+        # it, so adding f once (exactly) sets it
+        first = one if (w > zero) & (last_j < 0) else zero
+        for ch in range(N_FEAT):
+            f, at = fs[ch], CH * np.uint64(ch) + j
+            ref = buf[FREF + at] + f * first
+            buf[FREF + at] = ref
+            buf[FACC + at] += f * w
+            d = f - ref
+            buf[FS1 + at] += m * d
+            buf[FS2 + at] += m * d * d
+        last[j] = kk if w > zero else last_j
+        buf[FT + j] = t_new if w > zero else t_old
+        buf[FS0 + j] += m
+    n_stop = 0
+    for j in range(p0, p1):
+        n_stop += 1 if done[j] == mark else 0
+    return n_stop
 
 
 @numba.njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -233,119 +324,148 @@ def raster_fwd(
     whole tiles.
 
     Per Gaussian, the rows of its bounding box form one contiguous span of the tile's row-major
-    lanes, processed by branch-free loops (masks as selects) that LLVM vectorises; lanes outside
-    the box contribute exact zeros. Each loop writes few arrays: more defeats the vectoriser's
-    alias checks.
+    lanes, processed by one fused branch-free loop (masks as selects) that LLVM vectorises;
+    lanes outside the box contribute exact zeros.
     """
     height, width = out_trans.shape
     tiles_x, n_tiles = tile_grid(height, width)
-    alpha_max, alpha_min, t_min = consts[K_ALPHA_MAX], consts[K_ALPHA_MIN], consts[K_T_MIN]
-    sigma_max, fast_exp = consts[K_SIGMA_MAX], feats.itemsize == 4
-    half, one, two, zero = consts[K_HALF], consts[K_ONE], consts[K_TWO], consts[K_ZERO]
+    one, two, zero = consts[K_ONE], consts[K_TWO], consts[K_ZERO]
     for chunk in numba.prange(n_chunks):
-        lane_x = lanes_like(feats)
-        lane_y = lanes_like(feats)
-        trans = lanes_like(feats)
+        buf = lane_buffer(FWD_FIELDS, feats)
         done = index_lanes()
         last = index_lanes()
-        s0 = lanes_like(feats)
-        acc = feature_lanes_like(feats)
-        ref = feature_lanes_like(feats)
-        s1 = feature_lanes_like(feats)
-        s2 = feature_lanes_like(feats)
-        alphas = lanes_like(feats)  # σ, then e^-σ, then the masked α
-        weights = lanes_like(feats)  # α T, 0 where not blended
-        moments = lanes_like(feats)  # v T², 0 where not blended
         for tile in range(chunk, n_tiles, n_chunks):
             px0, py0, px1, py1 = tile_box(tile, tiles_x, height, width)
-            tile_lanes(xs, ys, px0, py0, lane_x, lane_y)
-            trans[:] = one
+            tile_lanes(xs, ys, px0, py0, buf)
+            buf[FT:] = zero
+            buf[FT : FT + TILE_PIXELS] = one
             done[:] = 0
             last[:] = -1
-            s0[:] = zero
-            acc[:] = zero
-            ref[:] = zero
-            s1[:] = zero
-            s2[:] = zero
             n_active = (px1 - px0) * (py1 - py0)
             for k in range(tile_start[tile], tile_start[tile + 1]):
                 if n_active == 0:  # every pixel of the tile has terminated
                     break
                 g = isect_gauss[k]
                 o, v = opacities[g], variances[g]
+                mx, my = means2d[g, 0], means2d[g, 1]
+                a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+                fs = (feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3])
                 x0, x1 = xs[rects[g, 0]], xs[rects[g, 1]]
                 p0, p1 = lane_span(rects, g, py0, py1)
-                sigma_rows(
-                    lane_x, lane_y, p0, p1, means2d[g, 0], means2d[g, 1],
-                    conics[g, 0], conics[g, 1], conics[g, 2], sigma_max, half, alphas,
-                )  # fmt: skip
-                exp_neg_rows(alphas, p0, p1, fast_exp, consts)
-                for j in range(p0, p1):
-                    alpha = min(alpha_max, o * alphas[j])
-                    hit = ((lane_x[j] >= x0) & (lane_x[j] <= x1) & (done[j] == 0)
-                           & (alpha >= alpha_min))  # fmt: skip
-                    alphas[j] = alpha if hit else zero
-                for j in range(p0, p1):  # blend unless it would bring T below T_MIN
-                    t_old = trans[j]
-                    blend = (alphas[j] > zero) & (t_old * (one - alphas[j]) >= t_min)
-                    weights[j] = alphas[j] * t_old if blend else zero
-                    moments[j] = v * t_old * t_old if blend else zero
-                n_stop = 0
-                for j in range(p0, p1):
-                    stop = (alphas[j] > zero) & (trans[j] * (one - alphas[j]) < t_min)
-                    done[j] = 1 if stop else done[j]
-                    n_stop += 1 if stop else 0
-                n_active -= n_stop
-                for ch in range(feats.shape[1]):  # a runtime bound: no unrolling, less JIT
-                    f = feats[g, ch]
-                    for j in range(p0, p1):  # the first contributor is the shift of the moments
-                        ref[ch, j] = f if (weights[j] > zero) & (last[j] < 0) else ref[ch, j]
-                    for j in range(p0, p1):
-                        acc[ch, j] += f * weights[j]
-                    for j in range(p0, p1):
-                        d = f - ref[ch, j]
-                        s1[ch, j] += moments[j] * d
-                        s2[ch, j] += moments[j] * d * d
                 kk = np.int32(k)
-                for j in range(p0, p1):
-                    last[j] = kk if weights[j] > zero else last[j]
-                for j in range(p0, p1):
-                    trans[j] = trans[j] * (one - alphas[j]) if weights[j] > zero else trans[j]
-                for j in range(p0, p1):
-                    s0[j] += moments[j]
+                n_active -= blend_span(
+                    buf, done, last, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, consts
+                )
             for py in range(py0, py1):
                 for px in range(px0, px1):
                     p = (py - py0) * TILE_SIZE + px - px0
-                    out_trans[py, px] = trans[p]
+                    out_trans[py, px] = buf[FT + p]
                     out_last[py, px] = last[p]
                     for ch in range(N_FEAT):
-                        delta = acc[ch, p] - ref[ch, p]
-                        var = s2[ch, p] - two * delta * s1[ch, p] + delta * delta * s0[p]
-                        out_feat[py, px, ch] = acc[ch, p]
+                        at = CH * np.uint64(ch) + p
+                        acc, s0, s1 = buf[FACC + at], buf[FS0 + p], buf[FS1 + at]
+                        delta = acc - buf[FREF + at]
+                        var = buf[FS2 + at] - two * delta * s1 + delta * delta * s0
+                        out_feat[py, px, ch] = acc
                         out_var[py, px, ch] = max(var, zero)
-                        out_dvdf[py, px, ch] = s1[ch, p] - delta * s0[p]
+                        out_dvdf[py, px, ch] = s1 - delta * s0
 
 
 @numba.njit(cache=True, fastmath=FASTMATH)
-def lane_sum(values, p0, p1, partial):
-    """``Σ values[p0:p1]`` in a fixed order that vectorises without reassociation.
-
-    ``p0:p1`` are whole tile rows: each of the ``TILE_SIZE`` lanes of a row accumulates over the
-    rows in ``partial``, then the lanes are added pairwise (a tree). The order depends only on
-    the span, never on the compiled code, so every process gets the same bits (fast-math
-    ``reassoc`` did not guarantee that).
-    """
-    for lane in range(TILE_SIZE):
-        partial[lane] = values[p0 + np.uint64(lane)]
-    for row in range(p0 + np.uint64(TILE_SIZE), p1, np.uint64(TILE_SIZE)):
-        for lane in range(TILE_SIZE):
-            partial[lane] += values[row + np.uint64(lane)]
+def lane_total(acc, e):
+    """Sum of the ``TILE_SIZE`` lane partials of slot entry e, pairwise (a fixed tree), so
+    the order never depends on the compiled code."""
+    base = e * TILE_SIZE
     width = TILE_SIZE // 2
     while width > 0:
         for lane in range(width):
-            partial[lane] += partial[lane + width]
+            acc[base + lane] += acc[base + lane + width]
         width //= 2
-    return partial[0]
+    return acc[base]
+
+
+@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
+def unblend_lane(buf, last, j, kk, mx, my, a, b, c, o, x0, x1, consts):
+    """Backward, lane j: undo intersection kk's blend, ``T_i = T_{i+1} / (1 − α_i)`` (unchanged
+    where it was not blended), and return ``dx, dy, e^-σ, α_i, 1/(1 − α_i), T_i`` and ``T_i²``
+    (0 where not blended)."""
+    alpha_max, alpha_min = consts[K_ALPHA_MAX], consts[K_ALPHA_MIN]
+    one, zero = consts[K_ONE], consts[K_ZERO]
+    x = buf[j]
+    dx, dy = x - mx, buf[LANE_Y + j] - my
+    e = gaussian_weight(dx, dy, a, b, c, consts)
+    alpha = min(alpha_max, o * e)
+    hit = (x >= x0) & (x <= x1) & (last[j] >= kk) & (alpha >= alpha_min)
+    alpha = alpha if hit else zero
+    inverse = one / (one - alpha)
+    t = buf[BT + j] * inverse
+    buf[BT + j] = t
+    return dx, dy, e, alpha, inverse, t, (t * t if alpha > zero else zero)
+
+
+@numba.njit(cache=True, fastmath=FASTMATH)
+def variance_residual(buf, j, fs, zero):
+    """``q = Σ_ch ∂L/∂V (f − F)²`` at lane j for the features ``fs``."""
+    q = zero
+    for ch in range(N_FEAT):
+        at = CH * np.uint64(ch) + j
+        d = fs[ch] - buf[BFIN + at]
+        q += buf[BGV + at] * d * d
+    return q
+
+
+@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
+def unblend_span(buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, r_weight,
+                 variance_only, consts):  # fmt: skip
+    """Backward, one intersection (see :func:`blend_span`): undo Gaussian ``kk``'s blend in
+    lanes ``p0:p1`` (whole tile rows), update the lanes' running sums and leave in ``acc`` its
+    slot entries' partial sums, one per lane of a tile row (summed over the rows).
+
+    ``r_weight`` is 2 for the full gradient (the dependence of ``T_i²`` on the alphas in front),
+    else 0. With ``variance_only`` only ``v``'s entry is computed, as the full pass does.
+    """
+    half, two, zero = consts[K_HALF], consts[K_TWO], consts[K_ZERO]
+    row = np.uint64(TILE_SIZE)
+    acc[:] = zero
+    if variance_only:  # ∂L/∂v_i = Σ T_i² q_i
+        for r0 in range(p0, p1, row):
+            for lane in range(row):
+                j = r0 + lane
+                square = unblend_lane(buf, last, j, kk, mx, my, a, b, c, o, x0, x1, consts)[6]
+                acc[A_VAR + lane] += square * variance_residual(buf, j, fs, zero)
+        return
+    for r0 in range(p0, p1, row):
+        for lane in range(row):
+            j = r0 + lane
+            dx, dy, e, alpha, inverse, t, square = unblend_lane(
+                buf, last, j, kk, mx, my, a, b, c, o, x0, x1, consts
+            )
+            w = alpha * t
+            mom = v * square
+            q = variance_residual(buf, j, fs, zero)
+            g_dot_f = zero  # ⟨∂L/∂F, f_i⟩
+            for ch in range(N_FEAT):
+                f, at = fs[ch], CH * np.uint64(ch) + j
+                g_f = buf[BGFIN + at]
+                g_dot_f += g_f * f
+                d = f - buf[BFIN + at]
+                acc[A_FEAT + row * np.uint64(ch) + lane] += w * g_f + two * buf[BGV + at] * mom * d
+            acc[A_VAR + lane] += square * q
+            # ∂F/∂α_i = f_i T_i − (Σ_{j>i} f_j w_j)/(1 − α_i), dotted with ∂L/∂F.
+            d_alpha = t * g_dot_f + (
+                buf[BFINAL + j] - buf[BBEHIND + j] - r_weight * buf[BRSUM + j]
+            ) * inverse
+            blended = (alpha > zero) & (o * e < consts[K_ALPHA_MAX])
+            d_alpha = d_alpha if blended else zero
+            buf[BBEHIND + j] += w * g_dot_f
+            buf[BRSUM + j] += q * mom
+            d_sigma = -d_alpha * o * e
+            acc[A_OPACITY + lane] += d_alpha * e
+            acc[A_MEAN_X + lane] += -d_sigma * (a * dx + b * dy)
+            acc[A_MEAN_Y + lane] += -d_sigma * (b * dx + c * dy)
+            acc[A_CONIC_A + lane] += d_sigma * half * dx * dx
+            acc[A_CONIC_B + lane] += d_sigma * dx * dy
+            acc[A_CONIC_C + lane] += d_sigma * half * dy * dy
 
 
 @numba.njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -362,71 +482,42 @@ def raster_bwd(
     Without ``want_appearance`` (pose-only tracking) the colour, opacity and ``v`` entries are
     left at zero: only the geometry entries and the depth feature reach the pose. With
     ``variance_only`` (the end-of-run refinement: only ``v`` learns) every entry but ``v`` is
-    left at zero, and ``v``'s is the one the full pass computes, bit for bit.
+    left at zero. Every mode runs the same loop, so every entry is bitwise the full pass's.
 
     Like the forward, each Gaussian is processed over the tile-wide rows of its bounding box by
-    branch-free loops over lanes (masks as selects; masked lanes contribute exact zeros); each
-    slot entry is first written per lane, then summed by :func:`lane_sum` (vectorised, in a
-    fixed order).
+    one fused branch-free loop (masks as selects; masked lanes contribute exact zeros). Each
+    slot entry is accumulated per lane of a tile row, over the rows, then the lanes are summed
+    by :func:`lane_total`: a fixed order, so every process gets the same bits.
     """
     height, width = out_trans.shape
     tiles_x, n_tiles = tile_grid(height, width)
-    alpha_max, alpha_min = consts[K_ALPHA_MAX], consts[K_ALPHA_MIN]
-    sigma_max, fast_exp = consts[K_SIGMA_MAX], feats.itemsize == 4
-    half, one, two, zero = consts[K_HALF], consts[K_ONE], consts[K_TWO], consts[K_ZERO]
+    one, two, zero = consts[K_ONE], consts[K_TWO], consts[K_ZERO]
     r_weight = two if full_grad else zero  # ∂T_i²/∂α_j enters ∂L/∂α_j only in the full gradient
-    # q = Σ_ch ∂L/∂V (f − F)² feeds ∂L/∂v and the full gradient's r_sum only: pose-only tracking
-    # with the authors' gradient skips it (r_sum then stays 0)
-    need_q = want_appearance or full_grad
     for chunk in numba.prange(n_chunks):
-        lane_x = lanes_like(feats)
-        lane_y = lanes_like(feats)
-        trans = lanes_like(feats)  # T_{i+1}, then T_i while walking back
+        buf = lane_buffer(BWD_FIELDS, feats)
         last = index_lanes()
-        g_final = lanes_like(feats)  # ∂L/∂A · T_final
-        g_behind = lanes_like(feats)  # Σ_{j behind} w_j ⟨∂L/∂F, f_j⟩
-        r_sum = lanes_like(feats)  # Σ_{j behind} q_j u_j
-        fin = feature_lanes_like(feats)
-        g_fin = feature_lanes_like(feats)
-        g_v = feature_lanes_like(feats)
-        gauss = lanes_like(feats)  # σ, then e^-σ
-        alphas = lanes_like(feats)  # masked α
-        inverse = lanes_like(feats)  # 1 / (1 − α)
-        weights = lanes_like(feats)  # w = α T_i
-        moments = lanes_like(feats)  # u = v T_i², 0 where not blended
-        squares = lanes_like(feats)  # T_i², 0 where not blended
-        q_var = lanes_like(feats)  # q = Σ_ch ∂L/∂V (f − F)²
-        g_dot_f = lanes_like(feats)  # ⟨∂L/∂F, f_i⟩
-        d_alphas = lanes_like(feats)  # ∂L/∂α_i, 0 where not blended
-        d_sigmas = lanes_like(feats)  # ∂L/∂σ_i
-        terms = lanes_like(feats)  # one slot entry per lane, then summed
-        partial = np.empty(TILE_SIZE, feats.dtype)
+        acc = np.empty(N_SLOT * TILE_SIZE, feats.dtype)  # per slot entry, one partial per lane
         for tile in range(chunk, n_tiles, n_chunks):
             px0, py0, px1, py1 = tile_box(tile, tiles_x, height, width)
-            tile_lanes(xs, ys, px0, py0, lane_x, lane_y)
-            trans[:] = one
+            tile_lanes(xs, ys, px0, py0, buf)
+            buf[BT:] = zero
+            buf[BT : BT + TILE_PIXELS] = one
             last[:] = -1  # lanes past the image border never match
-            g_final[:] = zero
-            g_behind[:] = zero
-            r_sum[:] = zero
-            fin[:] = zero
-            g_fin[:] = zero
-            g_v[:] = zero
             k_end = tile_start[tile]  # one past the last contributor of the tile
             for py in range(py0, py1):
                 for px in range(px0, px1):
                     p = (py - py0) * TILE_SIZE + px - px0
-                    trans[p] = out_trans[py, px]
+                    buf[BT + p] = out_trans[py, px]
                     last[p] = out_last[py, px]
                     k_end = max(k_end, out_last[py, px] + 1)
-                    g_final[p] = grad_alpha[py, px] * out_trans[py, px]
+                    buf[BFINAL + p] = grad_alpha[py, px] * out_trans[py, px]
                     for ch in range(N_FEAT):
-                        fin[ch, p] = out_feat[py, px, ch]
-                        g_v[ch, p] = grad_var[py, px, ch]
+                        at = CH * np.uint64(ch) + p
+                        g_v = grad_var[py, px, ch]
+                        buf[BFIN + at] = out_feat[py, px, ch]
+                        buf[BGV + at] = g_v
                         # V depends on F: ∂V/∂F = −2 Σ v_i T_i² (f_i − F).
-                        g_fin[ch, p] = (
-                            grad_feat[py, px, ch] - two * g_v[ch, p] * out_dvdf[py, px, ch]
-                        )
+                        buf[BGFIN + at] = grad_feat[py, px, ch] - two * g_v * out_dvdf[py, px, ch]
             for k in range(k_end, tile_start[tile + 1]):  # behind every pixel's last contributor
                 for e in range(N_SLOT):
                     slots[k, e] = zero
@@ -435,97 +526,20 @@ def raster_bwd(
                 mx, my = means2d[g, 0], means2d[g, 1]
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 o, v = opacities[g], variances[g]
+                fs = (feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3])
                 x0, x1 = xs[rects[g, 0]], xs[rects[g, 1]]
                 p0, p1 = lane_span(rects, g, py0, py1)
-                sigma_rows(lane_x, lane_y, p0, p1, mx, my, a, b, c, sigma_max, half, gauss)
-                exp_neg_rows(gauss, p0, p1, fast_exp, consts)
                 kk = np.int32(k)
-                for j in range(p0, p1):
-                    alpha = min(alpha_max, o * gauss[j])
-                    hit = ((lane_x[j] >= x0) & (lane_x[j] <= x1) & (last[j] >= kk)
-                           & (alpha >= alpha_min))  # fmt: skip
-                    alphas[j] = alpha if hit else zero
-                for j in range(p0, p1):  # T_i = T_{i+1} / (1 − α_i); unchanged where not blended
-                    inverse[j] = one / (one - alphas[j])
-                    trans[j] = trans[j] * inverse[j]
-                for j in range(p0, p1):
-                    weights[j] = alphas[j] * trans[j]
-                    squares[j] = trans[j] * trans[j] if alphas[j] > zero else zero
-                if variance_only:  # ∂L/∂v_i = Σ T_i² q_i, summed as below
-                    for j in range(p0, p1):
-                        q_var[j] = zero
-                    for ch in range(N_FEAT):
-                        f = feats[g, ch]
-                        for j in range(p0, p1):
-                            d = f - fin[ch, j]
-                            q_var[j] += g_v[ch, j] * d * d
-                    for j in range(p0, p1):
-                        terms[j] = squares[j] * q_var[j]
-                    for e in range(N_SLOT):
-                        slots[k, e] = zero
-                    slots[k, S_VAR] = lane_sum(terms, p0, p1, partial)
-                    continue
-                for j in range(p0, p1):
-                    moments[j] = v * squares[j]
-                    q_var[j] = zero
-                    g_dot_f[j] = zero
-                for ch in range(N_FEAT):  # a runtime bound: no unrolling, less JIT
-                    f = feats[g, ch]
-                    if need_q:
-                        for j in range(p0, p1):
-                            d = f - fin[ch, j]
-                            q_var[j] += g_v[ch, j] * d * d
-                            g_dot_f[j] += g_fin[ch, j] * f
-                    else:
-                        for j in range(p0, p1):
-                            g_dot_f[j] += g_fin[ch, j] * f
-                    s_f = zero
-                    if want_appearance or ch == N_FEAT - 1:
-                        for j in range(p0, p1):
-                            d = f - fin[ch, j]
-                            terms[j] = weights[j] * g_fin[ch, j] + two * g_v[ch, j] * moments[j] * d
-                        s_f = lane_sum(terms, p0, p1, partial)
-                    slots[k, S_FEAT + ch] = s_f
-                for j in range(p0, p1):
-                    # ∂F/∂α_i = f_i T_i − (Σ_{j>i} f_j w_j)/(1 − α_i), dotted with ∂L/∂F.
-                    d_alpha = trans[j] * g_dot_f[j] + (
-                        g_final[j] - g_behind[j] - r_weight * r_sum[j]
-                    ) * inverse[j]
-                    blended = (alphas[j] > zero) & (o * gauss[j] < alpha_max)
-                    d_alphas[j] = d_alpha if blended else zero
-                if full_grad:
-                    for j in range(p0, p1):
-                        g_behind[j] += weights[j] * g_dot_f[j]
-                        r_sum[j] += q_var[j] * moments[j]
-                else:
-                    for j in range(p0, p1):
-                        g_behind[j] += weights[j] * g_dot_f[j]
-                for j in range(p0, p1):
-                    d_sigmas[j] = -d_alphas[j] * o * gauss[j]
-                s_opacity = s_var = zero
-                if want_appearance:
-                    for j in range(p0, p1):
-                        terms[j] = d_alphas[j] * gauss[j]
-                    s_opacity = lane_sum(terms, p0, p1, partial)
-                    for j in range(p0, p1):
-                        terms[j] = squares[j] * q_var[j]
-                    s_var = lane_sum(terms, p0, p1, partial)
-                slots[k, S_OPACITY], slots[k, S_VAR] = s_opacity, s_var
-                for j in range(p0, p1):
-                    terms[j] = -d_sigmas[j] * (a * (lane_x[j] - mx) + b * (lane_y[j] - my))
-                slots[k, S_MEAN] = lane_sum(terms, p0, p1, partial)
-                for j in range(p0, p1):
-                    terms[j] = -d_sigmas[j] * (b * (lane_x[j] - mx) + c * (lane_y[j] - my))
-                slots[k, S_MEAN + 1] = lane_sum(terms, p0, p1, partial)
-                for j in range(p0, p1):
-                    terms[j] = d_sigmas[j] * half * (lane_x[j] - mx) * (lane_x[j] - mx)
-                slots[k, S_CONIC] = lane_sum(terms, p0, p1, partial)
-                for j in range(p0, p1):
-                    terms[j] = d_sigmas[j] * (lane_x[j] - mx) * (lane_y[j] - my)
-                slots[k, S_CONIC + 1] = lane_sum(terms, p0, p1, partial)
-                for j in range(p0, p1):
-                    terms[j] = d_sigmas[j] * half * (lane_y[j] - my) * (lane_y[j] - my)
-                slots[k, S_CONIC + 2] = lane_sum(terms, p0, p1, partial)
+                unblend_span(
+                    buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, r_weight,
+                    variance_only, consts,
+                )  # fmt: skip
+                for e in range(N_SLOT):
+                    if variance_only:
+                        keep = e == S_VAR
+                    else:  # pose-only: the geometry entries and the depth feature
+                        keep = want_appearance or e < S_OPACITY or e == S_FEAT + N_FEAT - 1
+                    slots[k, e] = lane_total(acc, e) if keep else zero
 
 
 @numba.njit(parallel=True, cache=True)
