@@ -14,24 +14,28 @@ by Huber's function (iteratively reweighted least squares):
 
 Each term's scale is 1.4826 × its median absolute residual at the level's first iteration
 (floored), so neither term needs a weight tuned per sensor or scene. The pose update is the
-left perturbation T ← exp(ξ) T of `render.se3_exp`. All sums are fixed-order float64 torch
-reductions on the CPU: the same input gives the same transform.
+left perturbation T ← exp(ξ) T of `render.se3_exp`. The residuals and normal equations are
+numba kernels (`registration_kernels`) with fixed-order float64 sums: the same input gives the
+same transform.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from bgs_batch.config import RegistrationConfig
 from bgs_batch.render import Camera, se3_exp
+from bgs_batch.slam import registration_kernels as kernels
 
 MAD_TO_SIGMA = 1.4826  # the median absolute deviation of a Gaussian is 0.6745 σ
 GEOMETRIC_SCALE_FLOOR_M = 1e-3
 PHOTOMETRIC_SCALE_FLOOR = 2e-3  # intensity in [0, 1]
 HUBER_K = 1.345  # 95 % efficiency on Gaussian residuals
 DAMPING = 1e-9  # of the normal matrix's trace: keeps a degenerate (e.g. planar) system solvable
+JACOBIAN_COLUMNS = 6  # a step needs at least as many residuals
 GRAY_WEIGHTS = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma
 
 
@@ -109,102 +113,56 @@ def register(source: View, target: View, cfg: RegistrationConfig,
 
 
 class _Problem:
-    """The residuals of one pyramid level, with what does not depend on the transform."""
+    """One pyramid level: the source points and the target images the residuals read, as the
+    float64 arrays of `registration_kernels`."""
 
     def __init__(self, source: View, target: View, cfg: RegistrationConfig) -> None:
-        self.cfg, self.camera = cfg, target.camera
+        self.cfg = cfg
         valid = source.depth > 0
-        self.points = source.points()[valid]  # [N, 3]
-        self.intensity = source.gray[valid]
-        self.size = target.depth.shape
+        self.points = source.points()[valid].numpy()  # [N, 3]
+        self.intensities = source.gray[valid].numpy()
         points = target.points()
         gy, gx = torch.gradient(target.gray)
+        c = target.camera
+        height, width = target.depth.shape
         # flattened [H·W, ...] target images, gathered by pixel index
-        self.has_depth = (target.depth > 0).reshape(-1)
-        self.surface = points.reshape(-1, 3)
-        self.normals = _normals(points, target.depth > 0).reshape(-1, 3)
-        self.gray = target.gray.reshape(-1)
-        self.gradient = torch.stack([gx, gy], -1).reshape(-1, 2)  # ∂I/∂u, ∂I/∂v
+        self.target = (
+            points.reshape(-1, 3).numpy(),
+            _normals(points, target.depth > 0).reshape(-1, 3).numpy(),
+            (target.depth > 0).reshape(-1).numpy(),
+            target.gray.reshape(-1).numpy(),
+            torch.stack([gx, gy], -1).reshape(-1, 2).numpy(),  # ∂I/∂u, ∂I/∂v
+            np.array([c.fx, c.fy, c.cx, c.cy]),
+            height,
+            width,
+            cfg.max_distance,
+        )
 
     def step(self, transform: torch.Tensor, scales: tuple[float, float] | None
              ) -> tuple[torch.Tensor | None, tuple[float, float]]:  # fmt: skip
         """The Gauss-Newton step ξ from `transform`, and the terms' scales (fixed per level)."""
-        x = self.points @ transform[:3, :3].T + transform[:3, 3]
-        geometric, j_geometric = self._geometric(x)
-        photometric, j_photometric = self._photometric(x)
         if scales is None:
+            geometric, photometric = self._residuals(transform)
             scales = (_robust_scale(geometric, GEOMETRIC_SCALE_FLOOR_M),
                       _robust_scale(photometric, PHOTOMETRIC_SCALE_FLOOR))  # fmt: skip
-        residuals = torch.cat([geometric / scales[0], photometric / scales[1]])
-        jacobian = torch.cat([j_geometric / scales[0], j_photometric / scales[1]])
-        if residuals.numel() < 6:
+        normal, rhs, used = kernels.normal_equations(
+            self.points, self.intensities, transform.numpy(), *self.target, *scales, HUBER_K
+        )
+        if used < JACOBIAN_COLUMNS:
             return None, scales
-        weights = _huber_weights(residuals)
-        normal = jacobian.T @ (weights[:, None] * jacobian)
+        normal = torch.from_numpy(normal)
         normal = normal + DAMPING * torch.trace(normal) * torch.eye(6, dtype=torch.float64)
-        rhs = jacobian.T @ (weights * residuals)
-        return -torch.linalg.solve(normal, rhs), scales
+        return -torch.linalg.solve(normal, torch.from_numpy(rhs)), scales
 
     def fit(self, transform: torch.Tensor) -> tuple[float, float]:
         """(fitness, point-to-plane RMS) of `transform` at this level."""
-        if self.points.shape[0] == 0:
+        geometric, _ = self._residuals(transform)
+        if geometric.size == 0:
             return 0.0, float("inf")
-        x = self.points @ transform[:3, :3].T + transform[:3, 3]
-        geometric, _ = self._geometric(x)
-        if geometric.numel() == 0:
-            return 0.0, float("inf")
-        fitness = geometric.numel() / self.points.shape[0]
-        return fitness, float(geometric.square().mean().sqrt())
+        return geometric.size / self.points.shape[0], float(np.sqrt(np.mean(geometric**2)))
 
-    def _project(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Pixel coordinates (u, v) of points x and whether they lie in front of the camera."""
-        c = self.camera
-        z = x[:, 2]
-        front = z > 1e-6
-        z = torch.where(front, z, 1.0)
-        return c.fx * x[:, 0] / z + c.cx, c.fy * x[:, 1] / z + c.cy, front
-
-    def _geometric(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Point-to-plane residuals [M] and their Jacobians [M, 6] of the associated points."""
-        h, w = self.size
-        u, v, front = self._project(x)
-        col, row = torch.round(u).long(), torch.round(v).long()
-        inside = front & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        pixel = row.clamp(0, h - 1) * w + col.clamp(0, w - 1)
-        normal = self.normals[pixel]
-        offset = x - self.surface[pixel]
-        ok = (inside & self.has_depth[pixel] & normal.any(-1)
-              & (offset.norm(dim=-1) < self.cfg.max_distance))  # fmt: skip
-        x, normal, offset = x[ok], normal[ok], offset[ok]
-        residual = (normal * offset).sum(-1)
-        return residual, torch.cat([normal, torch.linalg.cross(x, normal)], -1)
-
-    def _photometric(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Intensity residuals [M] and their Jacobians [M, 6] where the bilinear sample's four
-        target pixels all have depth (the map is there)."""
-        c, (h, w) = self.camera, self.size
-        u, v, front = self._project(x)
-        u0, v0 = torch.floor(u), torch.floor(v)
-        inside = front & (u0 >= 0) & (u0 < w - 1) & (v0 >= 0) & (v0 < h - 1)
-        top_left = v0.long().clamp(0, h - 2) * w + u0.long().clamp(0, w - 2)
-        corners = [top_left, top_left + 1, top_left + w, top_left + w + 1]
-        ok = inside & torch.stack([self.has_depth[k] for k in corners]).all(0)
-        fu, fv = (u - u0)[ok], (v - v0)[ok]
-        bilinear = [(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv]
-        corners = [k[ok] for k in corners]
-
-        def sample(image: torch.Tensor) -> torch.Tensor:
-            return sum(wt.reshape(-1, *(1,) * (image.dim() - 1)) * image[k]
-                       for wt, k in zip(bilinear, corners, strict=True))  # fmt: skip
-
-        residual = sample(self.gray) - self.intensity[ok]
-        grad = sample(self.gradient)  # [M, 2]
-        x = x[ok]
-        inv_z = 1.0 / x[:, 2]
-        # ∂I/∂x through the pinhole: (g_u fx / z, g_v fy / z, −(g_u fx X + g_v fy Y) / z²)
-        g_u, g_v = grad[:, 0] * c.fx * inv_z, grad[:, 1] * c.fy * inv_z
-        d_point = torch.stack([g_u, g_v, -(g_u * x[:, 0] + g_v * x[:, 1]) * inv_z], -1)
-        return residual, torch.cat([d_point, torch.linalg.cross(x, d_point)], -1)
+    def _residuals(self, transform: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        return kernels.residuals(self.points, self.intensities, transform.numpy(), *self.target)
 
 
 def _normals(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -227,12 +185,9 @@ def _normals(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return normals
 
 
-def _robust_scale(residuals: torch.Tensor, floor: float) -> float:
-    if residuals.numel() == 0:
+def _robust_scale(residuals: np.ndarray, floor: float) -> float:
+    """MAD_TO_SIGMA × the lower median of |r| (as `torch.median`), at least `floor`."""
+    if residuals.size == 0:
         return floor
-    return max(MAD_TO_SIGMA * float(residuals.abs().median()), floor)
-
-
-def _huber_weights(scaled: torch.Tensor) -> torch.Tensor:
-    magnitude = scaled.abs()
-    return torch.where(magnitude <= HUBER_K, 1.0, HUBER_K / magnitude.clamp_min(1e-30))
+    middle = (residuals.size - 1) // 2
+    return max(MAD_TO_SIGMA * float(np.partition(np.abs(residuals), middle)[middle]), floor)

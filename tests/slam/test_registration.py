@@ -8,7 +8,8 @@ import torch
 
 from bgs_batch.config import RegistrationConfig
 from bgs_batch.render import Camera
-from bgs_batch.slam.registration import View, register
+from bgs_batch.slam import registration_kernels as kernels
+from bgs_batch.slam.registration import View, _normals, register
 from converters.synthetic import RoomRenderer, SynthConfig, camera_poses
 
 CONFIG = SynthConfig(width=160, height=120, seed=5, frames=30)
@@ -74,3 +75,55 @@ def test_no_overlap_gives_no_fitness(renderer):
     result = register(source, empty, RegistrationConfig())
     assert result.fitness == 0.0
     assert torch.equal(result.transform, torch.eye(4, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("term", ["geometric", "photometric"])
+def test_kernel_jacobians_match_finite_differences(renderer, term):
+    """Each residual's Jacobian row (ρ, φ) equals central differences of the residual under
+    x → x + ε e_k (ρ) and x → x + ε e_k × x (φ), for points whose association does not change."""
+    c2w = camera_poses(CONFIG)[5]
+    source = _view(renderer, c2w, seed=1)
+    target = _view(renderer, c2w @ _offset(1.0, 0.01), seed=2)
+    target_points = target.points()
+    gy, gx = torch.gradient(target.gray)
+    c = target.camera
+    images = (
+        target_points.reshape(-1, 3).numpy(),
+        _normals(target_points, target.depth > 0).reshape(-1, 3).numpy(),
+        (target.depth > 0).reshape(-1).numpy(),
+        target.gray.reshape(-1).numpy(),
+        torch.stack([gx, gy], -1).reshape(-1, 2).numpy(),
+        np.array([c.fx, c.fy, c.cx, c.cy]),
+        CONFIG.height,
+        CONFIG.width,
+    )
+    surface, normals, has_depth, gray, gradient, camera, height, width = images
+    valid = source.depth > 0
+    points, intensities = source.points()[valid].numpy(), source.gray[valid].numpy()
+
+    def residual(x: np.ndarray, i: int, jac: np.ndarray) -> tuple[bool, float]:
+        if term == "geometric":
+            return kernels.geometric_term(*x, surface, normals, has_depth, camera, height, width,
+                                          0.07, jac)  # fmt: skip
+        return kernels.photometric_term(*x, intensities[i], gray, gradient, has_depth, camera,
+                                        height, width, jac)  # fmt: skip
+
+    eps, checked = 1e-7, 0
+    jac, scratch = np.empty(6), np.empty(6)
+    for i in range(0, len(points), 97):
+        x = points[i]
+        ok, _ = residual(x, i, jac)
+        if not ok:
+            continue
+        moves = [np.eye(3)[k] for k in range(3)] + [np.cross(np.eye(3)[k], x) for k in range(3)]
+        numeric = []
+        for move in moves:
+            (ok_plus, plus), (ok_minus, minus) = (residual(x + s * eps * move, i, scratch)
+                                                  for s in (1, -1))  # fmt: skip
+            numeric.append((plus - minus) / (2 * eps) if ok_plus and ok_minus else np.nan)
+        if np.isnan(numeric).any() or np.abs(np.array(numeric) - jac).max() > 1e-3 * (
+            1 + np.abs(jac).max()
+        ):
+            continue  # the association changed within ε (a pixel or cell boundary)
+        checked += 1
+    assert checked > 0.9 * sum(residual(points[i], i, jac)[0] for i in range(0, len(points), 97))
