@@ -30,7 +30,8 @@ of the predicted sensor depth σ with it (`sigma_rank`). The SUMMARY line
 gives the mean ratio to Open3D over the real validation pieces and over the synthetic
 sequences, the dev ratio, the slowest fps, the sequences where the full variance was not
 the best at every seed, and the lowest Spearman correlation. ATEs are deterministic for a
-given seed; times depend on the machine's load.
+given seed; times depend on the machine's load. The numba kernels are compiled (or loaded from
+their cache) by `bgs_batch.warmup` before anything is timed.
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ from bgs_batch.config import ConfigError, load_config
 from bgs_batch.metrics import ate, path_length, rpe
 from bgs_batch.slam.frames import Level, downsample
 from bgs_batch.store import FrameStore
+from bgs_batch.warmup import warm_up
 from converters.synthetic import motion_config, read_depth_sigma, synthesize
 from converters.tum import TumOptions, convert_tum
 from jobs.run import LOG_FILE, run_job
@@ -296,6 +298,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
+        # a cold numba cache (a fresh worktree) would charge the JIT to the first run's speed
+        print(f"  kernels compiled or loaded in {warm_up(root / 'warmup'):.0f} s (not timed)",
+              flush=True)  # fmt: skip
         stores = make_stores(root, args.only, args.max_frames)
         results = [run_sequence(name, store, root, args.seeds, args.overrides)
                    for name, store in stores.items()]  # fmt: skip
