@@ -261,8 +261,7 @@ A_FEAT, A_VAR = slot_lanes(S_FEAT), slot_lanes(S_VAR)
 def gaussian_weight(dx, dy, a, b, c, consts):
     """``e^-σ`` (see :func:`exp_neg`), ``σ = ½(a dx² + c dy²) + b dx dy`` capped at ``SIGMA_MAX``.
 
-    Scalars only: called inside the fused loops, where an array argument would bring
-    reference-count calls.
+    The one evaluation of a splat at a lane, shared by the forward's and backward's loops.
     """
     half = consts[K_HALF]
     sigma = min(half * (a * dx * dx + c * dy * dy) + b * dx * dy, consts[K_SIGMA_MAX])

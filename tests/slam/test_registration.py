@@ -9,7 +9,7 @@ import torch
 from bgs_batch.config import RegistrationConfig
 from bgs_batch.render import Camera
 from bgs_batch.slam import registration_kernels as kernels
-from bgs_batch.slam.registration import View, _normals, register
+from bgs_batch.slam.registration import View, _Problem, register
 from converters.synthetic import RoomRenderer, SynthConfig, camera_poses
 
 CONFIG = SynthConfig(width=160, height=120, seed=5, frames=30)
@@ -84,27 +84,16 @@ def test_kernel_jacobians_match_finite_differences(renderer, term):
     c2w = camera_poses(CONFIG)[5]
     source = _view(renderer, c2w, seed=1)
     target = _view(renderer, c2w @ _offset(1.0, 0.01), seed=2)
-    target_points = target.points()
-    gy, gx = torch.gradient(target.gray)
-    c = target.camera
-    images = (
-        target_points.reshape(-1, 3).numpy(),
-        _normals(target_points, target.depth > 0).reshape(-1, 3).numpy(),
-        (target.depth > 0).reshape(-1).numpy(),
-        target.gray.reshape(-1).numpy(),
-        torch.stack([gx, gy], -1).reshape(-1, 2).numpy(),
-        np.array([c.fx, c.fy, c.cx, c.cy]),
-        CONFIG.height,
-        CONFIG.width,
+    problem = _Problem(source, target, RegistrationConfig())
+    surface, normals, has_depth, gray, gradient, camera, height, width, max_distance = (
+        problem.target
     )
-    surface, normals, has_depth, gray, gradient, camera, height, width = images
-    valid = source.depth > 0
-    points, intensities = source.points()[valid].numpy(), source.gray[valid].numpy()
+    points, intensities = problem.points, problem.intensities
 
     def residual(x: np.ndarray, i: int, jac: np.ndarray) -> tuple[bool, float]:
         if term == "geometric":
             return kernels.geometric_term(*x, surface, normals, has_depth, camera, height, width,
-                                          0.07, jac)  # fmt: skip
+                                          max_distance, jac)  # fmt: skip
         return kernels.photometric_term(*x, intensities[i], gray, gradient, has_depth, camera,
                                         height, width, jac)  # fmt: skip
 
