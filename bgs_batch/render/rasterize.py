@@ -108,6 +108,24 @@ def scratch(name: str, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
     return buf[key][:size].reshape(shape)
 
 
+def depth_order(depths: np.ndarray) -> np.ndarray:
+    """Indices that sort `depths` ascending, ties by index: exactly
+    ``np.argsort(depths, kind="stable")``, for float32 about 4× faster.
+
+    Each float32 depth's bits, made order preserving as a signed integer (negative values flip
+    their magnitude bits), form the high half of a unique key whose low half is the index;
+    numpy sorts integers with SIMD (a stable argsort of floats is a timsort), and unique keys
+    leave no order to chance. ±0 and NaN do not occur: projection keeps only depths beyond the
+    near plane. Float64 (the tests' oracle precision) keeps the stable argsort.
+    """
+    if depths.dtype != np.float32 or depths.size >= 2**32:
+        return np.argsort(depths, kind="stable")
+    bits = depths.view(np.int32).astype(np.int64)
+    bits ^= (bits >> 31) & 0x7FFFFFFF
+    keys = np.sort((bits << 32) | np.arange(depths.size, dtype=np.int64))
+    return keys & 0xFFFFFFFF
+
+
 def to_numpy(t: torch.Tensor) -> np.ndarray:
     """A contiguous numpy view (no copy when already contiguous) of a detached CPU tensor."""
     return t.detach().contiguous().numpy()
@@ -126,7 +144,7 @@ class _RasterizeNumba(torch.autograd.Function):
         feats = to_numpy(torch.cat([colors.detach(), depths.detach().unsqueeze(-1)], -1))
         tiles_x, n_tiles = nr.tile_grid(height, width)
         rects = nr.compute_rects(mean_np, conic_np, opac_np, width, height)
-        order = np.argsort(to_numpy(depths), kind="stable")
+        order = depth_order(to_numpy(depths))
         tile_start, isect_gauss, isect_slot, gauss_start = nr.bin_tiles(
             rects, order, tiles_x, n_tiles
         )

@@ -4,6 +4,7 @@ determinism and dtype discipline (docs/method.md §1-2, §10)."""
 import re
 
 import numba
+import numpy as np
 import pytest
 import torch
 
@@ -19,6 +20,7 @@ from bgs_batch.render import (
 from bgs_batch.render import _numba_project as npj
 from bgs_batch.render import _numba_raster as nr
 from bgs_batch.render.constants import T_MIN
+from bgs_batch.render.rasterize import depth_order
 from bgs_batch.render.reference import quat_wxyz_to_matrix
 from bgs_batch.render.testing import (
     max_rel_error,
@@ -283,6 +285,17 @@ def test_results_are_bitwise_identical_across_thread_counts():
     assert one[0].alpha.max() > 0.5
     for a, b in zip((*one[0], *one[1]), (*two[0], *two[1]), strict=True):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_depth_order_is_the_stable_argsort(dtype):
+    rng = np.random.default_rng(3)
+    depths = rng.normal(2.0, 1.5, 5000).astype(dtype)  # both signs
+    depths[::7] = depths[0]  # ties keep their index order
+    depths[1::11] = np.finfo(dtype).tiny  # the smallest normal number
+    depths[2::13] = np.float32(1e30)
+    order = depth_order(depths)
+    assert np.array_equal(order, np.argsort(depths, kind="stable"))
 
 
 def test_rejects_bad_inputs():
