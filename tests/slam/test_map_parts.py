@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from bgs_batch.config import MappingConfig, SeedingConfig, SubmapConfig
 from bgs_batch.geometry import pose_matrix
@@ -108,6 +109,13 @@ def test_downsample_blocks_and_camera():
     assert half.depth[0, 0, 0] == pytest.approx((1 + 1 + 3) / 3)
     assert (half.camera.width, half.camera.height, half.camera.fx) == (3, 2, 5)
     assert half.camera.cx == pytest.approx(1.0)  # (2.5 + 0.5) / 2 - 0.5
+
+
+@pytest.mark.parametrize("factor", [2, 3])
+def test_block_mean_averages_blocks_and_drops_the_remainder(factor):
+    image = torch.rand(7, 11, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    pooled = F.avg_pool2d(image.permute(2, 0, 1)[None], factor)[0].permute(1, 2, 0)
+    assert torch.allclose(block_mean(image, factor), pooled, rtol=0, atol=1e-15)
 
 
 def test_repeat_blocks_pads_to_the_full_size():
