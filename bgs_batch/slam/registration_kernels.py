@@ -10,8 +10,9 @@ Per source point, with x = T p its position in the target camera:
   pixels have depth, with Jacobian (g, x × g), g = ∇I_t · ∂π/∂x.
 
 The torch version of the same sums took ~40 small-tensor operations per Gauss-Newton step (8 %
-of a run). Sums run in point order (geometric, then photometric term of each point): the same
-input gives the same bits.
+of a run). The normal equations are summed over ``SUM_CHUNKS`` fixed runs of points in
+parallel, each in point order (geometric, then photometric term of each point), then over the
+runs in order: the same input gives the same bits on any number of threads.
 """
 
 from __future__ import annotations
@@ -24,6 +25,9 @@ import numpy as np
 MIN_DEPTH = 1e-6
 """Points at or behind this camera depth (m) project nowhere."""
 JACOBIAN = 6
+SUM_CHUNKS = 8
+"""Runs of points whose normal equations are summed in parallel: a constant, so the order of
+the sums never depends on the thread count."""
 
 
 @numba.njit(cache=True, inline="always")
@@ -135,28 +139,36 @@ def _add_huber_term(r, scale, huber_k, jac, normal, rhs):
             normal[a, b] += ja * (weight * (jac[b] / scale))
 
 
-@numba.njit(cache=True)
+@numba.njit(parallel=True, cache=True)
 def normal_equations(points, intensities, transform, surface, normals, has_depth, gray,
                      gradient, camera, height, width, max_distance, geometric_scale,
                      photometric_scale, huber_k):  # fmt: skip
     """``(Jᵀ W J [6, 6], Jᵀ W r [6], residuals used)`` at `transform`, each term's residuals
     divided by its scale and weighted by Huber's function (threshold `huber_k`)."""
-    normal, rhs = np.zeros((JACOBIAN, JACOBIAN)), np.zeros(JACOBIAN)
-    jac = np.empty(JACOBIAN)
-    used = 0
-    for i in range(points.shape[0]):
-        x, y, z = _moved(points, i, transform)
-        ok, r = geometric_term(x, y, z, surface, normals, has_depth, camera, height, width,
-                               max_distance, jac)  # fmt: skip
-        if ok:
-            _add_huber_term(r, geometric_scale, huber_k, jac, normal, rhs)
-            used += 1
-        ok, r = photometric_term(x, y, z, intensities[i], gray, gradient, has_depth, camera,
-                                 height, width, jac)  # fmt: skip
-        if ok:
-            _add_huber_term(r, photometric_scale, huber_k, jac, normal, rhs)
-            used += 1
+    n = points.shape[0]
+    normals_part = np.zeros((SUM_CHUNKS, JACOBIAN, JACOBIAN))
+    rhs_part = np.zeros((SUM_CHUNKS, JACOBIAN))
+    used_part = np.zeros(SUM_CHUNKS, np.int64)
+    for chunk in numba.prange(SUM_CHUNKS):
+        normal, rhs = normals_part[chunk], rhs_part[chunk]
+        jac = np.empty(JACOBIAN)
+        for i in range(chunk * n // SUM_CHUNKS, (chunk + 1) * n // SUM_CHUNKS):
+            x, y, z = _moved(points, i, transform)
+            ok, r = geometric_term(x, y, z, surface, normals, has_depth, camera, height, width,
+                                   max_distance, jac)  # fmt: skip
+            if ok:
+                _add_huber_term(r, geometric_scale, huber_k, jac, normal, rhs)
+                used_part[chunk] += 1
+            ok, r = photometric_term(x, y, z, intensities[i], gray, gradient, has_depth,
+                                     camera, height, width, jac)  # fmt: skip
+            if ok:
+                _add_huber_term(r, photometric_scale, huber_k, jac, normal, rhs)
+                used_part[chunk] += 1
+    normal, rhs = normals_part[0].copy(), rhs_part[0].copy()
+    for chunk in range(1, SUM_CHUNKS):
+        normal += normals_part[chunk]
+        rhs += rhs_part[chunk]
     for a in range(JACOBIAN):
         for b in range(a):
             normal[a, b] = normal[b, a]
-    return normal, rhs, used
+    return normal, rhs, used_part.sum()
