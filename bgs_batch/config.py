@@ -288,6 +288,8 @@ class Config:
     """A whole SLAM run."""
 
     seed: int = 0
+    # threads of the numba kernels; results never depend on it (torch always runs two,
+    # `jobs.run.TORCH_THREADS`)
     threads: int = 2
     # pixels removed at every image border before anything else; None: the store's recommended
     # crop (`bgs inspect` shows it; the reference systems' crop for the camera, else 0)

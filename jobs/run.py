@@ -66,12 +66,15 @@ SUBMAP_DIR = "submaps"
 TIMING_FIELDS = ("elapsed_s", "stage_s")
 """Event fields that measure time: the only ones that differ between runs of the same job."""
 log = logging.getLogger(__name__)
-TORCH_THREADS = 1  # torch only runs small per-pixel ops; its spinning OpenMP pool fights numba's
+TORCH_THREADS = 2
+"""Torch's threads, whatever `threads` says: torch splits its sums by thread count, so only a
+constant keeps every machine's and every setting's results equal. Its idle pool sleeps
+(``OMP_WAIT_POLICY=PASSIVE``), so it does not slow numba's kernels."""
 
 
 def set_threads(threads: int) -> None:
-    """Fix thread counts: the numba kernels get `threads`, torch one (results do not depend on
-    either: the kernels' sums have a fixed order)."""
+    """Fix thread counts: the numba kernels get `threads` (their sums have a fixed order, so
+    results do not depend on it), torch ``TORCH_THREADS``."""
     torch.set_num_threads(TORCH_THREADS)
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
 
