@@ -38,10 +38,10 @@ class UncertaintyConfig:
     sensor_downscale: int = 1  # CPU lever: evaluate the network this many times coarser
     # "none": the network predicts σ²_sensor,D itself (the paper). "nguyen": σ²_sensor,D is
     # Nguyen et al.'s (2012) Kinect noise model of the measured depth, σ = a + b(z − z0)² +
-    # c/√z · θ²/(π/2 − θ)² with θ the surface's tilt from the depth's local slope, times
-    # exp(the network's output, within ±ln 10), which starts at 0: an untrained network ranks
-    # depth errors by the sensor's physics, and learning corrects it (docs/method.md §3; not a
-    # preset's choice yet: it changes the keyframes the surprise picks, docs/experiments.md)
+    # c/√z · θ²/(π/2 − θ)² with θ the surface's tilt from the depth's local slope, plus the
+    # frame's mean of the network's depth output: the physics ranks the pixels, the network
+    # learns the level (docs/method.md §3; not a preset's choice yet: the dev excerpt tracks
+    # worse with it, docs/experiments.md)
     sensor_prior: Literal["none", "nguyen"] = "none"
     nguyen_a: float = 0.0012  # m
     nguyen_b: float = 0.0019  # m⁻¹

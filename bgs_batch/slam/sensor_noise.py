@@ -4,9 +4,10 @@ A small fully convolutional net on the frame itself, input ``[depth m, R, G, B]`
 layers and 4 per-pixel fully connected (1×1 conv) layers, 32 channels, ReLU, two output maps.
 The colour variance (shared by R, G, B) is softplus of the first plus a floor. The depth
 variance is, as in the paper, softplus of the second plus the floor, or, with a physical prior
-(`NguyenDepthNoise`), the prior times exp(the second, bounded to ± ln 10 by tanh): the network
-then learns a correction to the sensor's known physics and starts from none. Trained with the
-map during mapping only; in tracking it is evaluated once per frame and detached.
+(`NguyenDepthNoise`), the frame's mean of that map plus the prior: the network learns the
+frame's noise level as the paper's does, and the sensor's known physics ranks its pixels.
+Trained with the map during mapping only; in tracking it is evaluated once per frame and
+detached.
 (The authors' code has 3 rather than 4 per-pixel layers; the paper describes 4.)
 """
 
@@ -26,11 +27,8 @@ from bgs_batch.slam.frames import Level, block_mean, repeat_blocks
 CONV_LAYERS = 4
 PIXEL_LAYERS = 4  # the last one maps to the 2 outputs
 INPUT_CHANNELS = 4  # depth, R, G, B
-OUTPUT_CHANNELS = 2  # colour variance, depth variance (or its log-correction)
+OUTPUT_CHANNELS = 2  # colour variance, depth variance (with a prior: its frame mean)
 DEPTH_OUTPUT = 1
-# the learned correction scales the prior by at most this factor either way (smoothly, by
-# tanh): enough to recalibrate a sensor, too little to scramble the physics' ranking
-MAX_CORRECTION = 10.0
 
 
 @dataclass(frozen=True)
@@ -95,8 +93,7 @@ class SensorNoiseNet(nn.Module):
     def __init__(self, hidden: int = 32, floor: float = 1e-4, initial: float = 0.0,
                  prior: NguyenDepthNoise | None = None) -> None:  # fmt: skip
         """`initial` > `floor`: the head's bias starts at softplus⁻¹(initial − floor), so the
-        untrained network predicts about `initial` everywhere (0: PyTorch's default bias).
-        With a depth `prior`, the depth output's weights start at 0: no correction."""
+        untrained network predicts about `initial` everywhere (0: PyTorch's default bias)."""
         super().__init__()
         self.floor = floor
         self.prior = prior
@@ -110,10 +107,6 @@ class SensorNoiseNet(nn.Module):
                 raise ValueError(f"initial sensor variance {initial} must exceed the floor {floor}")
             with torch.no_grad():
                 self.head.bias.fill_(math.log(math.expm1(initial - floor)))
-        if prior is not None:
-            with torch.no_grad():
-                self.head.weight[DEPTH_OUTPUT].zero_()
-                self.head.bias[DEPTH_OUTPUT].zero_()
 
     @classmethod
     def from_config(cls, u: UncertaintyConfig) -> SensorNoiseNet:
@@ -134,17 +127,20 @@ class SensorNoiseNet(nn.Module):
         `downscale` > 1 is a CPU lever (the network dominates a mapping iteration at full
         resolution): the network sees the block-averaged frame and its outputs are repeated back
         to every pixel of their block; the depth prior is evaluated at full resolution.
+
+        With a depth prior, σ²_sensor,D = mean(network's depth map) + σ_z²: the mean follows the
+        NLL at the pace of the paper's network (which on a synthetic room falls from its start
+        to its floor within a run), so Σ_D keeps the plain network's scale, and with it the
+        surprise's keyframes and tracking's weights; a constant changes no pixel's rank.
         """
         h, w = level.rgb.shape[:2]
         raw = self.raw(*(block_mean(t, downscale) for t in (level.rgb, level.depth)))
         variances = (F.softplus(raw) + self.floor)[0].permute(1, 2, 0)
         colour, depth_part = variances[..., :DEPTH_OUTPUT], variances[..., DEPTH_OUTPUT:]
         if self.prior is not None:
-            bound = math.log(MAX_CORRECTION)
-            correction = raw[0, DEPTH_OUTPUT:].permute(1, 2, 0)
-            depth_part = torch.exp(bound * torch.tanh(correction / bound))
+            depth_part = depth_part.mean() + self.prior.variance(level.depth, level.camera)
+        elif downscale > 1:
+            depth_part = repeat_blocks(depth_part, downscale, h, w)
         if downscale > 1:
-            colour, depth_part = (repeat_blocks(v, downscale, h, w) for v in (colour, depth_part))
-        if self.prior is None:
-            return colour, depth_part
-        return colour, self.prior.variance(level.depth, level.camera) * depth_part
+            colour = repeat_blocks(colour, downscale, h, w)
+        return colour, depth_part
