@@ -14,6 +14,7 @@ detached.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 
 import torch
@@ -102,11 +103,24 @@ class SensorNoiseNet(nn.Module):
         pixels = [nn.Conv2d(hidden, hidden, 1) for _ in range(PIXEL_LAYERS - 1)]
         self.hidden = nn.ModuleList(convs + pixels)
         self.head = nn.Conv2d(hidden, OUTPUT_CHANNELS, 1)
+        self._physics: dict[int, torch.Tensor] = {}  # id(depth tensor) -> its prior variance
         if initial:
             if initial <= floor:
                 raise ValueError(f"initial sensor variance {initial} must exceed the floor {floor}")
             with torch.no_grad():
                 self.head.bias.fill_(math.log(math.expm1(initial - floor)))
+
+    def depth_physics(self, level: Level) -> torch.Tensor:
+        """The prior's σ_z² of `level`'s measured depth, computed once per depth tensor: it
+        depends on nothing learned, and mapping evaluates each keyframe at every iteration. An
+        entry lives as long as its depth tensor (which no stage changes in place)."""
+        key = id(level.depth)
+        physics = self._physics.get(key)
+        if physics is None:
+            physics = self.prior.variance(level.depth, level.camera)
+            self._physics[key] = physics
+            weakref.finalize(level.depth, self._physics.pop, key, None)
+        return physics
 
     @classmethod
     def from_config(cls, u: UncertaintyConfig) -> SensorNoiseNet:
@@ -138,7 +152,7 @@ class SensorNoiseNet(nn.Module):
         variances = (F.softplus(raw) + self.floor)[0].permute(1, 2, 0)
         colour, depth_part = variances[..., :DEPTH_OUTPUT], variances[..., DEPTH_OUTPUT:]
         if self.prior is not None:
-            depth_part = depth_part.mean() + self.prior.variance(level.depth, level.camera)
+            depth_part = depth_part.mean() + self.depth_physics(level)
         elif downscale > 1:
             depth_part = repeat_blocks(depth_part, downscale, h, w)
         if downscale > 1:

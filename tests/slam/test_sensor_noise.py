@@ -139,6 +139,22 @@ def test_prior_network_adds_the_frames_learned_level_to_the_prior():
     assert float(net.head.bias.grad[1]) > 0 and float(net.head.bias.grad[0]) == 0
 
 
+def test_the_prior_is_computed_once_per_depth_image():
+    """Mapping evaluates a keyframe many times: the physics is cached per depth tensor (the same
+    values), and the entry goes with the tensor."""
+    torch.manual_seed(0)
+    net = SensorNoiseNet(hidden=8, floor=1e-4, initial=1e-3, prior=NGUYEN).double()
+    frame = level(24, 32)
+    first = net.depth_physics(frame)
+    assert torch.equal(first, NGUYEN.variance(frame.depth, frame.camera))
+    assert net.depth_physics(frame) is first and len(net._physics) == 1
+    assert torch.equal(net(frame)[1], net(frame)[1])
+    other = level(24, 32, seed=1)
+    assert not torch.equal(net.depth_physics(other), first)
+    del frame, first, other
+    assert net._physics == {}
+
+
 def test_the_settings_choose_the_sensor_model():
     for preset in ("cpu", "paper"):  # the plain network (docs/experiments.md says why)
         assert SensorNoiseNet.from_config(load_config(preset).uncertainty).prior is None
