@@ -64,7 +64,10 @@ def seconds_to_first_frame(store: Path, job: Path, env: dict[str, str]) -> tuple
         if first is None and first_tracked(job / LOG_FILE):
             first = time.perf_counter() - start
         time.sleep(POLL_S)
-    _, err = process.communicate(timeout=TIMEOUT_S)
+    if process.poll() is None:
+        process.kill()
+        sys.exit(f"bgs run took more than {TIMEOUT_S:.0f} s; nothing measured")
+    _, err = process.communicate()
     if process.returncode != 0:
         sys.exit(f"bgs run failed ({process.returncode}): {err.strip()[-500:]}")
     total = time.perf_counter() - start

@@ -40,8 +40,8 @@ class UncertaintyConfig:
     # Nguyen et al.'s (2012) Kinect noise model of the measured depth, σ = a + b(z − z0)² +
     # c/√z · θ²/(π/2 − θ)² with θ the surface's tilt from the depth's local slope, plus the
     # frame's mean of the network's depth output: the physics ranks the pixels, the network
-    # learns the level (docs/method.md §3; not a preset's choice yet: it costs speed until the
-    # physics is cached per keyframe, docs/experiments.md)
+    # learns the level (docs/method.md §3; not a preset's choice yet: its speed with the
+    # physics cached per frame is still to be measured on the suite, docs/experiments.md)
     sensor_prior: Literal["none", "nguyen"] = "none"
     nguyen_a: float = 0.0012  # m
     nguyen_b: float = 0.0019  # m⁻¹
