@@ -10,8 +10,9 @@ quantiles) of the merged PLY's properties and of each uncertainty image dataset.
 Runs are deterministic on one machine; across CPUs, every library that picks its kernels by the
 CPU it finds would change the order of vectorised sums, which a SLAM run then amplifies. The
 child therefore compiles numba for the x86-64-v3 target (AVX2 + FMA, the x86-64 psABI level)
-and keeps PyTorch, oneDNN, MKL, OpenBLAS, NumPy and OpenCV on their AVX2 kernels
-(`pinned_environment`), so one record holds on every x86-64 CPU with AVX2.
+and keeps PyTorch, oneDNN, OpenBLAS, NumPy and OpenCV on their AVX2 kernels and MKL on its
+vendor-independent branch (`pinned_environment`), so one record holds on every x86-64 CPU with
+AVX2, Intel or AMD.
 """
 
 from __future__ import annotations
@@ -38,8 +39,10 @@ FIXED_ENVIRONMENT = {
     "NUMBA_DISABLE_INTEL_SVML": "1",  # SVML's vector maths differ per ISA
     "ATEN_CPU_CAPABILITY": "avx2",  # PyTorch's CPU kernels
     "ONEDNN_MAX_CPU_ISA": "AVX2",  # the sensor network's convolutions
-    "MKL_CBWR": "AVX2",  # MKL (PyTorch's BLAS, Open3D's): the AVX2 code path on every CPU
-    "MKL_ENABLE_INSTRUCTIONS": "AVX2",
+    # MKL (PyTorch's BLAS and LAPACK; Open3D's): its one code path that is the same on Intel
+    # and AMD CPUs (SSE2 without approximate reciprocals). An AMD CPU ignores every other
+    # branch (MKL_VERBOSE reports CNR:AUTO there) and runs its own kernels.
+    "MKL_CBWR": "COMPATIBLE",
     "OPENBLAS_CORETYPE": "Haswell",  # NumPy's BLAS: its AVX2 kernels
     "OMP_NUM_THREADS": "2",
 }
