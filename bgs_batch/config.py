@@ -40,8 +40,7 @@ class UncertaintyConfig:
     # Nguyen et al.'s (2012) Kinect noise model of the measured depth, σ = a + b(z − z0)² +
     # c/√z · θ²/(π/2 − θ)² with θ the surface's tilt from the depth's local slope, plus the
     # frame's mean of the network's depth output: the physics ranks the pixels, the network
-    # learns the level (docs/method.md §3; not a preset's choice yet: its speed with the
-    # physics cached per frame is still to be measured on the suite, docs/experiments.md)
+    # learns the level (docs/method.md §3; the `cpu` preset's choice, docs/experiments.md)
     sensor_prior: Literal["none", "nguyen"] = "none"
     nguyen_a: float = 0.0012  # m
     nguyen_b: float = 0.0019  # m⁻¹
@@ -497,6 +496,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         # start the network at the map floor's scale, not at softplus(0) ≈ 0.69, from which the
         # NLL saturates it at the 1e-4 floor for good (docs/experiments.md)
         "uncertainty.sensor_initial": 1e-3,
+        # the depth noise's known physics ranks the pixels (Nguyen et al. 2012) and the network
+        # learns the frame's level: an untrained network ranks nothing (docs/experiments.md)
+        "uncertainty.sensor_prior": "nguyen",
         # at the end, fit the frozen submaps' r_i and the sensor network by the NLL: the map
         # term gets the iterations mapping cannot give it; tracking is over by then
         "uncertainty.refine_passes": 15,

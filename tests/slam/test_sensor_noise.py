@@ -156,11 +156,10 @@ def test_the_prior_is_computed_once_per_depth_image():
 
 
 def test_the_settings_choose_the_sensor_model():
-    for preset in ("cpu", "paper"):  # the plain network (docs/experiments.md says why)
-        assert SensorNoiseNet.from_config(load_config(preset).uncertainty).prior is None
-    nguyen = SensorNoiseNet.from_config(load_config("cpu", ["uncertainty.sensor_prior=nguyen"])
-                                        .uncertainty)  # fmt: skip
-    assert nguyen.prior == NGUYEN
+    assert SensorNoiseNet.from_config(load_config("paper").uncertainty).prior is None
+    assert SensorNoiseNet.from_config(load_config("cpu").uncertainty).prior == NGUYEN
+    plain = load_config("cpu", ["uncertainty.sensor_prior=none"])
+    assert SensorNoiseNet.from_config(plain.uncertainty).prior is None
     custom = load_config("cpu", ["uncertainty.sensor_prior=nguyen", "uncertainty.nguyen_b=0.003"])
     assert SensorNoiseNet.from_config(custom.uncertainty).prior.b == 0.003
 
