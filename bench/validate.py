@@ -21,17 +21,18 @@ the ratio of the mean to Open3D's ATE, the frame-to-frame error (RPE over one fr
 mean over seeds), the estimated path length of seed 0 beside the true one and Open3D's, CPU
 seconds per frame of bgs (all threads) and of Open3D, bgs's frames per second, its tracking
 seconds per frame, median tracking iterations, and the share of frames whose start the warm start
-moved (registration trusted). A second table ranks the uncertainty: per sequence the depth
-AUSE-MAE (raw, m; `bgs eval`'s metrics on the keyframes, mean over seeds) of the full predictive
-variance Σ_D and of its map and sensor parts and a VarSplat-style variance, the colour AUSE, and
-at how many seeds the full variance ranks the depth errors best of the four, and, on the
-synthetic sequences, whose true per-pixel noise σ `bgs synth` writes, the Spearman correlation
-of the predicted sensor depth σ with it (`sigma_rank`). The SUMMARY line
+moved (registration trusted), and the process's peak resident memory during a run (the largest
+over seeds; the bench's own imports included). A second table ranks the uncertainty: per
+sequence the depth AUSE-MAE (raw, m; `bgs eval`'s metrics on the keyframes, mean over seeds) of
+the full predictive variance Σ_D and of its map and sensor parts and a VarSplat-style variance,
+the colour AUSE, and at how many seeds the full variance ranks the depth errors best of the
+four, and, on the synthetic sequences, whose true per-pixel noise σ `bgs synth` writes, the
+Spearman correlation of the predicted sensor depth σ with it (`sigma_rank`). The SUMMARY line
 gives the mean ratio to Open3D over the real validation pieces and over the synthetic
-sequences, the dev ratio, the slowest fps, the sequences where the full variance was not
-the best at every seed, and the lowest Spearman correlation. ATEs are deterministic for a
-given seed; times depend on the machine's load. The numba kernels are compiled (or loaded from
-their cache) by `bgs_batch.warmup` before anything is timed.
+sequences, the dev ratio, the slowest fps, the highest peak memory, the sequences where the
+full variance was not the best at every seed, and the lowest Spearman correlation. ATEs are
+deterministic for a given seed; times depend on the machine's load. The numba kernels are
+compiled (or loaded from their cache) by `bgs_batch.warmup` before anything is timed.
 """
 
 from __future__ import annotations
@@ -102,6 +103,7 @@ class SequenceResult:
     tracking_per_frame: list[float] = field(default_factory=list)
     median_iterations: list[float] = field(default_factory=list)
     registered: list[float] = field(default_factory=list)  # share of frames the warm start moved
+    peak_rss_mb: list[float] = field(default_factory=list)  # of this process during the run
     ause_depth: list[dict[str, float]] = field(default_factory=list)  # per seed, per variance
     ause_color: list[float] = field(default_factory=list)
     sigma_rho: list[float] = field(default_factory=list)  # synthetic: per seed, see sigma_rank
@@ -150,8 +152,10 @@ def run_sequence(name: str, store: Path, root: Path, seeds: int, overrides: list
     for seed in range(seeds):
         job = root / f"{name}_seed{seed}"
         cpu_before = _cpu_seconds()
+        _reset_peak_rss()
         summary = run_job(store, job, load_config("cpu", [*overrides, f"seed={seed}"]))
         cpu = _cpu_seconds() - cpu_before
+        result.peak_rss_mb.append(_peak_rss_mb())
         _, poses = read_tum(job / "trajectory.txt")
         events = [json.loads(line) for line in (job / LOG_FILE).read_text().splitlines()]
         result.ates.append(summary.ate_rmse_m)
@@ -210,6 +214,20 @@ def sigma_rank(job: Path, store: Path, sequence: Path) -> float:
     return float(np.mean(rhos))
 
 
+def _reset_peak_rss() -> None:
+    """Start this process's peak resident set (VmHWM) afresh (Linux ≥ 4.0), so each run's
+    peak is its own, not an earlier run's."""
+    Path("/proc/self/clear_refs").write_text("5")
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak resident set since the last reset, in MB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    raise RuntimeError("no VmHWM in /proc/self/status")
+
+
 def _cpu_seconds() -> float:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return usage.ru_utime + usage.ru_stime
@@ -219,7 +237,8 @@ def print_table(results: list[SequenceResult], seeds: int) -> None:
     seed_columns = "".join(f"{f'seed {s}':>8}" for s in range(seeds))
     header = (f"{'sequence':<9}{'frames':>7}{'Open3D':>8}{seed_columns}{'mean':>8}{'ratio':>7}"
               f"{'RPE bgs':>9}{'RPE O3D':>9}{'path bgs/true/O3D m':>21}{'cpu s/f':>9}"
-              f"{'O3D':>6}{'fps':>6}{'track s/f':>10}{'iters':>6}{'warm':>6}")  # fmt: skip
+              f"{'O3D':>6}{'fps':>6}{'track s/f':>10}{'iters':>6}{'warm':>6}"
+              f"{'peak MB':>9}")  # fmt: skip
     print("ATE and RPE (1 frame, translation) in cm; ratio = mean ATE / Open3D's ATE")
     print(header)
     print("-" * len(header))
@@ -232,7 +251,7 @@ def print_table(results: list[SequenceResult], seeds: int) -> None:
               f"{statistics.mean(r.cpu_per_frame):>9.2f}{r.o3d_cpu_per_frame:>6.2f}"
               f"{statistics.mean(r.fps):>6.2f}{statistics.mean(r.tracking_per_frame):>10.2f}"
               f"{statistics.median(r.median_iterations):>6.0f}"
-              f"{statistics.mean(r.registered):>6.0%}")  # fmt: skip
+              f"{statistics.mean(r.registered):>6.0%}{max(r.peak_rss_mb):>9.0f}")  # fmt: skip
     print()
     print("Depth AUSE-MAE (raw, m, mean over seeds) of each variance; colour AUSE of Σ_C; "
           "best = seeds at which the full Σ_D ranks depth errors best of the four; ρ σ_D = "
@@ -265,6 +284,7 @@ def summary_line(results: list[SequenceResult]) -> str:
         parts.append(f"dev {by_name['dev'].ratio:.2f}x")
     slowest = min(results, key=lambda r: statistics.mean(r.fps))
     parts.append(f"slowest {statistics.mean(slowest.fps):.2f} fps ({slowest.name})")
+    parts.append(f"peak RSS {max(max(r.peak_rss_mb) for r in results):.0f} MB")
     behind = [r.name for r in results if r.full_variance_best < len(r.ause_depth)]
     parts.append("full Σ_D ranks depth best at every seed " + (
         "on every sequence" if not behind else f"except on {', '.join(behind)}"))  # fmt: skip
