@@ -12,7 +12,7 @@ CPU it finds would change the order of vectorised sums, which a SLAM run then am
 child therefore compiles numba for the x86-64-v3 target (AVX2 + FMA, the x86-64 psABI level)
 and keeps PyTorch, oneDNN, OpenBLAS, NumPy and OpenCV on their AVX2 kernels and MKL on its
 vendor-independent branch (`pinned_environment`), so one record holds on every x86-64 CPU with
-AVX2, Intel or AMD.
+AVX2 of the recording's vendor (PyTorch's float32 sqrt and atan still differ between vendors).
 """
 
 from __future__ import annotations
@@ -63,6 +63,17 @@ METRICS = {
     "ause_color": ("uncertainty", "ause_mae_color", "ause_raw"),
     "ause_depth": ("uncertainty", "ause_mae_depth", "ause_raw"),
 }
+
+
+def cpu_vendor() -> str:
+    """The CPU's vendor string (``GenuineIntel``, ``AuthenticAMD``, ...; "unknown" without
+    /proc/cpuinfo): some libraries' results still differ between vendors (docs/goldens.md)."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return "unknown"
+    return next((line.split(":", 1)[1].strip() for line in lines
+                 if line.startswith("vendor_id")), "unknown")  # fmt: skip
 
 
 def host_supports_target() -> bool:
@@ -138,6 +149,7 @@ def condense(job: Path) -> dict[str, Any]:
                       if isinstance(d, h5py.Dataset) and d.dtype.kind == "f" else None)  # fmt: skip
     return {
         "target": TARGET,
+        "vendor": cpu_vendor(),
         "trajectory": (job / "trajectory.txt").read_text().splitlines(),
         "keyframes": [[e["frame"], e["keyframe"], e["reason"], e["score_color"], e["score_depth"]]
                       for e in events],  # fmt: skip
