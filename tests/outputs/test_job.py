@@ -207,12 +207,16 @@ def test_renderer_prepares_frames_as_the_slam_and_upsamples_the_sensor_term(fini
         assert not np.array_equal(full.measured_depth, as_stored)
         coarse = UncertaintyRenderer(finished_job, opened).frame(3)
     assert full.var_depth.shape == (SIZE[1], SIZE[0])
-    block = cfg.mapping.downscale * cfg.uncertainty.sensor_downscale
-    sensor = full.var_depth_sensor
-    np.testing.assert_array_equal(sensor, np.repeat(np.repeat(sensor[::block, ::block], block, 0),
-                                                    block, 1)[: SIZE[1], : SIZE[0]])  # fmt: skip
+    # the network's colour map has a value per sensor_downscale block of the mapping level, the
+    # depth prior one per mapping pixel: each is repeated onto the finer grid, never resampled
+    m, s = cfg.mapping.downscale, cfg.uncertainty.sensor_downscale
+    assert cfg.uncertainty.sensor_prior == "nguyen"
+    for sensor, block in ((full.var_color_sensor, m * s), (full.var_depth_sensor, m)):
+        repeated = np.repeat(np.repeat(sensor[::block, ::block], block, 0), block, 1)
+        np.testing.assert_array_equal(sensor, repeated[: SIZE[1], : SIZE[0]])
     # the SLAM's sensor values, only repeated onto the finer grid
-    np.testing.assert_array_equal(np.unique(sensor), np.unique(coarse.var_depth_sensor))
+    np.testing.assert_array_equal(np.unique(full.var_depth_sensor),
+                                  np.unique(coarse.var_depth_sensor))  # fmt: skip
 
 
 def test_eval_is_deterministic_and_takes_lpips_weights(copy):
