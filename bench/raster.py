@@ -2,7 +2,9 @@
 
 Run ``.venv/bin/python bench/raster.py`` (float32, 2 threads). Every case renders colour, depth,
 alpha and both variances and back-propagates random upstream gradients; the tracking case
-differentiates the pose only. Times are the minimum of ``REPEATS`` runs after ``WARMUP``.
+differentiates the pose only. Each backward starts from cleared gradients (``grad = None``), as
+every mapping and tracking iteration does, so no run adds into the previous run's gradients.
+Times are the minimum of ``REPEATS`` runs after ``WARMUP``.
 
 JIT rows start fresh processes: *cold* with an empty temporary ``NUMBA_CACHE_DIR``, *warm* with
 the same directory again. Numba caches compiled kernels in ``__pycache__`` next to the sources,
@@ -108,6 +110,8 @@ def _run_case(gaussians: Gaussians, camera, tracking: bool) -> tuple[float, floa
         state["out"] = render(gaussians, se3_exp(xi) @ room_viewmat(), camera)
 
     def backward():
+        for t in [*vars(gaussians).values(), xi]:  # as mapping and tracking do each iteration
+            t.grad = None
         forward()
         out = list(state["out"])
         torch.autograd.backward(out, [torch.ones_like(o) for o in out])
