@@ -37,9 +37,8 @@ ACROSS_VENDORS = {  # metric: (relative, absolute) tolerance between CPU vendors
     "ause_color": (0.3, 0.0),
     "ause_depth": (0.3, 0.0),
 }
-"""How far a run on another vendor's CPU may land from the record (`check_across_vendors`):
-on the synthetic case an AMD Zen 5 and an emulated Intel Haswell differ by 6 % in ATE, 10 % with
-scale, 0.04 dB PSNR, 1 % depth L1 and 2 % AUSE, with the same keyframes."""
+"""How far a run on another vendor's CPU may land from the record (`check_across_vendors`);
+set from the spread measured between vendors (docs/goldens.md)."""
 
 needs_target = pytest.mark.skipif(
     not host_supports_target(),
