@@ -53,6 +53,12 @@ class UncertaintyConfig:
     # map re-trained with the NLL for 30k iterations; this gives the map term its iterations
     refine_passes: int = 0
     refine_lr: float = 0.05
+    # At the end of a run (after the refinement), fit the gains a, b of Σ_D's map term and of
+    # its sensor term's per-pixel part by the Gaussian NLL (Eq. 14) of the keyframes' depth
+    # residuals, without the floors, which hide the two parts' relative scale from the NLL;
+    # the reports use b·σ²_sensor,D + a·V_D + floor (`slam.calibration`; off: a = b = 1)
+    calibrate: bool = False
+    calibration_pixels: int = 500_000  # at most this many residuals, spread over the keyframes
 
 
 @dataclass
@@ -368,6 +374,7 @@ RANGES: dict[str, Range] = {
     "uncertainty.nguyen_c": NON_NEGATIVE,
     "uncertainty.refine_passes": NON_NEGATIVE,
     "uncertainty.refine_lr": POSITIVE,
+    "uncertainty.calibration_pixels": COUNT,
     "tracking.iterations": COUNT,
     "tracking.rot_lr": POSITIVE,
     "tracking.trans_lr": POSITIVE,
@@ -502,6 +509,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         # at the end, fit the frozen submaps' r_i and the sensor network by the NLL: the map
         # term gets the iterations mapping cannot give it; tracking is over by then
         "uncertainty.refine_passes": 15,
+        # then set the two parts of Σ_D against each other by the NLL, without the floors that
+        # hide their scales from it (docs/method.md §4; measured in docs/experiments.md)
+        "uncertainty.calibrate": True,
         # a batch run is read at the end: also close loops from the last submap (LoopSplat's
         # lc.final, off in its configs)
         "loop_closure.final": True,

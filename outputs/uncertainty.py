@@ -8,7 +8,9 @@ the variances with the SLAM's own `predictive_variance` (paper Eq. 10, 11):
 - Σ_C = σ²_sensor,C + map_C and Σ_D = σ²_sensor,D + map_D, where the map term is the rendered
   opacity-induced variance V (Eq. 3) plus its floor, replaced by the large "unobserved" value
   where the rendered alpha is below the threshold (all from the run's config);
-- "map only" is that map term (the same call with a zero sensor term), "sensor only" σ²_sensor.
+- "map only" is that map term (the same call with a zero sensor term), "sensor only" σ²_sensor;
+- after a calibrated run (`uncertainty.calibrate`), Σ_D = b·σ²_sensor,D + a·V_D + floor with the
+  gains a, b saved in the sensor network's state (`slam.calibration`).
 
 Everything follows the run: crop and depth clipping as `Slam.prepare`, the sensor network
 evaluated exactly as `Slam.process` does it (at the mapping resolution, `sensor_downscale`
@@ -148,8 +150,9 @@ class UncertaintyRenderer:
             w2c = Keyframe(index, level, self.poses[index]).w2c  # as the SLAM's view matrices
             out = render(self._gaussians(event.submap), w2c, level.camera, full_grad=u.full_grad)
             zero = torch.zeros(())
-            var_c, var_d = predictive_variances(out, sensor_c, sensor_d, u)
-            map_c, map_d = predictive_variances(out, zero, zero, u)
+            gain = self.sensor.gains.map
+            var_c, var_d = predictive_variances(out, sensor_c, sensor_d, u, gain)
+            map_c, map_d = predictive_variances(out, zero, zero, u, gain)
         return FrameUncertainty(
             frame=index,
             timestamp=event.timestamp,

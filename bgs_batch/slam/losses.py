@@ -42,11 +42,13 @@ def predictive_variance(
 
 def predictive_variances(
     out: RasterOutput, sensor_color: torch.Tensor, sensor_depth: torch.Tensor,
-    cfg: UncertaintyConfig,
+    cfg: UncertaintyConfig, depth_map_gain: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """Σ_C and Σ_D of a render (Eq. 10, 11): `predictive_variance` of its V_C and V_D."""
+    """Σ_C and Σ_D of a render (Eq. 10, 11): `predictive_variance` of its V_C and V_D, the
+    latter times the calibrated map gain in reports (`slam.calibration`; 1 within the SLAM)."""
+    var_depth = out.var_depth if depth_map_gain == 1.0 else depth_map_gain * out.var_depth
     return (predictive_variance(out.var_color, sensor_color, out.alpha, cfg),
-            predictive_variance(out.var_depth, sensor_depth, out.alpha, cfg))  # fmt: skip
+            predictive_variance(var_depth, sensor_depth, out.alpha, cfg))  # fmt: skip
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

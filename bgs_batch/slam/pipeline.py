@@ -21,6 +21,7 @@ import torch
 from bgs_batch.atomic import save_torch
 from bgs_batch.config import Config
 from bgs_batch.slam.adam import Adam
+from bgs_batch.slam.calibration import DepthGains, depth_samples, fit_depth_gains
 from bgs_batch.slam.depth_timing import depth_motion
 from bgs_batch.slam.frames import Level, prepare_frame
 from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY, GaussianMap
@@ -304,10 +305,13 @@ class Slam:
             self._finish_submap(last_frame=len(self.poses) - 1)
             if self.cfg.loop_closure.final:  # LoopSplat's lc.final
                 self._close_loops(finished, event=None)
-        if self.cfg.uncertainty.refine_passes:
+        u = self.cfg.uncertainty
+        if u.refine_passes or u.calibrate:
             with self.timings.measure("refinement"):
-                for record in self.submaps:
+                for record in self.submaps if u.refine_passes else []:
                     self._refine_submap(record, read_frame)
+                if u.calibrate:
+                    self._calibrate(read_frame)
 
     def trajectory(self) -> tuple[np.ndarray, SmoothingReport | None]:
         """The camera-to-world poses (N, 4, 4) to report: as tracked and corrected, with the
@@ -322,6 +326,24 @@ class Slam:
         if not self.cfg.smoothing.enabled:
             return poses, None
         return smooth_trajectory(poses, np.array(self.timestamps), self.cfg.smoothing)
+
+    def _calibrate(self, read_frame: Callable[[int], Frame]) -> None:
+        """Fit Σ_D's gains on every submap's keyframes at their final state
+        (`calibration.fit_depth_gains`), from gains 1 so that a repeated call agrees."""
+        self.sensor.set_gains(DepthGains())
+        limit = self.cfg.uncertainty.calibration_pixels // max(1, len(self.keyframe_frames))
+        samples = []
+        for record in self.submaps:
+            gmap = GaussianMap.from_state_dict(torch.load(record.path, weights_only=True)["params"])
+            if not len(gmap):
+                continue
+            gaussians = gmap.gaussians()
+            for index in record.keyframes:
+                keyframe = self._reread_keyframe(index, read_frame)
+                samples.append(depth_samples(gaussians, keyframe, self.sensor,
+                                             self.cfg.uncertainty, limit))  # fmt: skip
+        if samples:
+            self.sensor.set_gains(fit_depth_gains(*map(np.concatenate, zip(*samples, strict=True))))
 
     def _refine_submap(self, record: SubmapRecord, read_frame: Callable[[int], Frame]) -> None:
         """`Mapper.refine_uncertainty` on a frozen submap (at its final pose), starting from the

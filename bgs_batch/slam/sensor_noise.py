@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import weakref
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -23,6 +24,7 @@ from torch import nn
 
 from bgs_batch.config import UncertaintyConfig
 from bgs_batch.render import Camera
+from bgs_batch.slam.calibration import DepthGains
 from bgs_batch.slam.frames import Level, block_mean, repeat_blocks
 
 CONV_LAYERS = 4
@@ -104,6 +106,9 @@ class SensorNoiseNet(nn.Module):
         self.hidden = nn.ModuleList(convs + pixels)
         self.head = nn.Conv2d(hidden, OUTPUT_CHANNELS, 1)
         self._physics: dict[int, torch.Tensor] = {}  # id(depth tensor) -> its prior variance
+        # Σ_D's gains (map, sensor), fitted at the end of a run (`slam.calibration`); the sensor
+        # gain multiplies the depth variance's per-pixel part, the map gain is the reports'
+        self.register_buffer("depth_gains", torch.ones(2))
         if initial:
             if initial <= floor:
                 raise ValueError(f"initial sensor variance {initial} must exceed the floor {floor}")
@@ -121,6 +126,22 @@ class SensorNoiseNet(nn.Module):
             self._physics[key] = physics
             weakref.finalize(level.depth, self._physics.pop, key, None)
         return physics
+
+    @property
+    def gains(self) -> DepthGains:
+        return DepthGains(*(float(g) for g in self.depth_gains))
+
+    def set_gains(self, gains: DepthGains) -> None:
+        self.depth_gains.copy_(torch.tensor([gains.map, gains.sensor]))
+
+    def load_state_dict(self, state: dict[str, torch.Tensor], strict: bool = True) -> Any:
+        """As `nn.Module`'s; a state saved before the gains existed has gains 1."""
+        return super().load_state_dict({"depth_gains": torch.ones(2), **state}, strict)
+
+    def _gained(self, part: torch.Tensor) -> torch.Tensor:
+        """The per-pixel part of σ²_sensor,D times the sensor gain (untouched at gain 1)."""
+        gain = self.depth_gains[1]
+        return part if gain == 1.0 else gain * part
 
     @classmethod
     def from_config(cls, u: UncertaintyConfig) -> SensorNoiseNet:
@@ -152,9 +173,11 @@ class SensorNoiseNet(nn.Module):
         variances = (F.softplus(raw) + self.floor)[0].permute(1, 2, 0)
         colour, depth_part = variances[..., :DEPTH_OUTPUT], variances[..., DEPTH_OUTPUT:]
         if self.prior is not None:
-            depth_part = depth_part.mean() + self.depth_physics(level)
-        elif downscale > 1:
-            depth_part = repeat_blocks(depth_part, downscale, h, w)
+            depth_part = depth_part.mean() + self._gained(self.depth_physics(level))
+        else:
+            if downscale > 1:
+                depth_part = repeat_blocks(depth_part, downscale, h, w)
+            depth_part = self._gained(depth_part)
         if downscale > 1:
             colour = repeat_blocks(colour, downscale, h, w)
         return colour, depth_part
