@@ -56,7 +56,7 @@ class UncertaintyConfig:
     # At the end of a run (after the refinement), fit the gains a, b of Σ_D's map term and of
     # its sensor term's per-pixel part by the Gaussian NLL (Eq. 14) of the keyframes' depth
     # residuals, without the floors, which hide the two parts' relative scale from the NLL;
-    # the reports use b·σ²_sensor,D + a·V_D + floor (`slam.calibration`; off: a = b = 1)
+    # the reports use σ²_sensor,D (that part × b) + a·V_D + floor (`slam.calibration`)
     calibrate: bool = False
     calibration_pixels: int = 500_000  # at most this many residuals, spread over the keyframes
 

@@ -9,8 +9,9 @@ the variances with the SLAM's own `predictive_variance` (paper Eq. 10, 11):
   opacity-induced variance V (Eq. 3) plus its floor, replaced by the large "unobserved" value
   where the rendered alpha is below the threshold (all from the run's config);
 - "map only" is that map term (the same call with a zero sensor term), "sensor only" σ²_sensor;
-- after a calibrated run (`uncertainty.calibrate`), Σ_D = b·σ²_sensor,D + a·V_D + floor with the
-  gains a, b saved in the sensor network's state (`slam.calibration`).
+- after a calibrated run (`uncertainty.calibrate`), the map term of Σ_D is a·V_D + floor and
+  the sensor term's per-pixel part is times b, with the gains a, b saved in the sensor
+  network's state (`slam.calibration`).
 
 Everything follows the run: crop and depth clipping as `Slam.prepare`, the sensor network
 evaluated exactly as `Slam.process` does it (at the mapping resolution, `sensor_downscale`

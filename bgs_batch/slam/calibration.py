@@ -7,12 +7,14 @@ network in mapping, the rᵢ behind V_D in mapping and the end-of-run refinement
 "below the floor" and never sets the two parts' scales against each other; their sum then ranks
 the errors by whichever part happens to be larger. With the geometry final, the gains a, b of
 
-    s = c + a·V_D + b·σ²_sensor,D
+    s = c + a·V_D + b·P,  P = the per-pixel part of σ²_sensor,D (the physics with the Nguyen
+                           prior, whose network mean is a constant; else the network's map)
 
 are fitted by the paper's Gaussian NLL (Eq. 14), mean(r²/s + log s), over the keyframes' depth
 residuals r where the map is observed, without the floors (c, fitted alongside, stands for the
-residual level neither part explains). The reported Σ_D is then b·σ²_sensor,D + a·V_D + floor:
-a constant changes no pixel's rank, so the floor keeps its role and the gains set the order.
+residual level neither part explains). The reported Σ_D is then σ²_sensor,D + a·V_D + floor
+with P times b: a constant changes no pixel's rank, so the floor keeps its role and the gains
+set the order.
 """
 
 from __future__ import annotations
