@@ -41,7 +41,7 @@ LOG_BOUND = 30.0  # |ln c|, |ln a|, |ln b| at most: a part absent from the data 
 
 @dataclass(frozen=True)
 class DepthGains:
-    """Multipliers of the map term V_D and of σ²_sensor,D in the reported Σ_D."""
+    """Multipliers of the map term V_D and of σ²_sensor,D's per-pixel part in the reported Σ_D."""
 
     map: float = 1.0
     sensor: float = 1.0

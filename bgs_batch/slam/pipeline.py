@@ -308,8 +308,9 @@ class Slam:
         u = self.cfg.uncertainty
         if u.refine_passes or u.calibrate:
             with self.timings.measure("refinement"):
-                for record in self.submaps if u.refine_passes else []:
-                    self._refine_submap(record, read_frame)
+                if u.refine_passes:
+                    for record in self.submaps:
+                        self._refine_submap(record, read_frame)
                 if u.calibrate:
                     self._calibrate(read_frame)
 
