@@ -15,30 +15,33 @@ over seeds, not only on the dev excerpt it was tried on. The sequences:
   motion blur, a rolling shutter and large depth holes.
 
 Every sequence is converted with the defaults (what a user gets) and run with the `cpu` preset at
-seeds 0..N-1 (plus the ``--set`` overrides), and once with Open3D's frame-to-model TSDF SLAM in
-a child process (`baseline.py`). Per sequence it prints: the ATE of each seed and their mean,
-the ratio of the mean to Open3D's ATE, the frame-to-frame error (RPE over one frame, translation,
-mean over seeds), the estimated path length of seed 0 beside the true one and Open3D's, CPU
-seconds per frame of bgs (all threads) and of Open3D, bgs's frames per second, its tracking
-seconds per frame, median tracking iterations, and the share of frames whose start the warm start
-moved (registration trusted), and the process's peak resident memory during a run (the largest
-over seeds; the bench's own imports included). A second table ranks the uncertainty: per
-sequence the depth AUSE-MAE (raw, m; `bgs eval`'s metrics on the keyframes, mean over seeds) of
-the full predictive variance Σ_D and of its map and sensor parts and a VarSplat-style variance,
-the colour AUSE, and at how many seeds the full variance ranks the depth errors best of the
-four, and, on the synthetic sequences, whose true per-pixel noise σ `bgs synth` writes, the
-Spearman correlation of the predicted sensor depth σ with it (`sigma_rank`). The SUMMARY line
-gives the mean ratio to Open3D over the real validation pieces and over the synthetic
-sequences, the dev ratio, the slowest fps, the highest peak memory, the sequences where the
-full variance was not the best at every seed, and the lowest Spearman correlation. ATEs are
-deterministic for a given seed; times depend on the machine's load. The numba kernels are
-compiled (or loaded from their cache) by `bgs_batch.warmup` before anything is timed.
+seeds 0..N-1 (plus the ``--set`` overrides), and once with Open3D's frame-to-model TSDF SLAM in a
+child process (`baseline.py`). Per sequence it prints: the ATE of each seed and their mean, the
+ratio of the mean to Open3D's ATE, the frame-to-frame error (RPE over one frame, translation, mean
+over seeds), the estimated path length of seed 0 beside the true one and Open3D's, CPU seconds per
+frame of bgs (all threads) and of Open3D, bgs's frames per second, its tracking seconds per frame,
+median tracking iterations, and the share of frames whose start the warm start moved (registration
+trusted), and the peak resident memory of a run's process (the largest over seeds). Each run has a
+process of its own, as a user's `bgs run` does, so its ATE is the CLI's to the last digit (a job's
+float rounding depends on what ran before it in a process). A second table ranks the uncertainty:
+per sequence the depth AUSE-MAE (raw, m; `bgs eval`'s metrics on the keyframes, mean over seeds)
+of the full predictive variance Σ_D and of its map and sensor parts and a VarSplat-style variance,
+the colour AUSE, and at how many seeds the full variance ranks the depth errors best of the four,
+and, on the synthetic sequences, whose true per-pixel noise σ `bgs synth` writes, the Spearman
+correlation of the predicted sensor depth σ with it (`sigma_rank`). The SUMMARY line gives the
+mean ratio to Open3D over the real validation pieces and over the synthetic sequences, the dev
+ratio, the slowest fps, the highest peak memory, the sequences where the full variance was not the
+best at every seed, and the lowest Spearman correlation. ATEs are deterministic for a given seed;
+times depend on the machine's load. The numba kernels are compiled into their cache by
+`bgs_batch.warmup` before anything is timed; a run's process loads them from there, as `bgs run`
+does.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import resource
 import statistics
 import sys
@@ -58,7 +61,7 @@ from bgs_batch.store import FrameStore
 from bgs_batch.warmup import warm_up
 from converters.synthetic import motion_config, read_depth_sigma, synthesize
 from converters.tum import TumOptions, convert_tum
-from jobs.run import LOG_FILE, run_job
+from jobs.run import LOG_FILE, RunSummary, run_job
 from outputs.export import METRICS_FILE, ExportOptions, export_job
 from outputs.jobfiles import FinishedJob
 from outputs.trajectory import read_tum
@@ -103,7 +106,7 @@ class SequenceResult:
     tracking_per_frame: list[float] = field(default_factory=list)
     median_iterations: list[float] = field(default_factory=list)
     registered: list[float] = field(default_factory=list)  # share of frames the warm start moved
-    peak_rss_mb: list[float] = field(default_factory=list)  # of this process during the run
+    peak_rss_mb: list[float] = field(default_factory=list)  # of the run's own process
     ause_depth: list[dict[str, float]] = field(default_factory=list)  # per seed, per variance
     ause_color: list[float] = field(default_factory=list)
     sigma_rho: list[float] = field(default_factory=list)  # synthetic: per seed, see sigma_rank
@@ -151,11 +154,10 @@ def run_sequence(name: str, store: Path, root: Path, seeds: int, overrides: list
     )  # fmt: skip
     for seed in range(seeds):
         job = root / f"{name}_seed{seed}"
-        cpu_before = _cpu_seconds()
-        _reset_peak_rss()
-        summary = run_job(store, job, load_config("cpu", [*overrides, f"seed={seed}"]))
-        cpu = _cpu_seconds() - cpu_before
-        result.peak_rss_mb.append(_peak_rss_mb())
+        run = run_in_child(store, job, [*overrides, f"seed={seed}"])
+        summary = run.summary
+        cpu = run.cpu_seconds
+        result.peak_rss_mb.append(run.peak_rss_mb)
         _, poses = read_tum(job / "trajectory.txt")
         events = [json.loads(line) for line in (job / LOG_FILE).read_text().splitlines()]
         result.ates.append(summary.ate_rmse_m)
@@ -214,23 +216,29 @@ def sigma_rank(job: Path, store: Path, sequence: Path) -> float:
     return float(np.mean(rhos))
 
 
-def _reset_peak_rss() -> None:
-    """Start this process's peak resident set (VmHWM) afresh (Linux ≥ 4.0), so each run's
-    peak is its own, not an earlier run's."""
-    Path("/proc/self/clear_refs").write_text("5")
+@dataclass(frozen=True)
+class ChildRun:
+    """What a run measured in its own process."""
+
+    summary: RunSummary
+    cpu_seconds: float  # of the run, all threads
+    peak_rss_mb: float  # the process's peak resident set, its imports included
 
 
-def _peak_rss_mb() -> float:
-    """This process's peak resident set since the last reset, in MB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    raise RuntimeError("no VmHWM in /proc/self/status")
+def run_in_child(store: Path, job: Path, overrides: list[str]) -> ChildRun:
+    """One `cpu`-preset run in a fresh process, as `bgs run` does it: a job's last float bits
+    depend on what ran before it in a process (docs/development.md), so each run starts from
+    nothing and the bench reports the numbers a user's `bgs run` gets."""
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        return pool.apply(_run, (store, job, overrides))
 
 
-def _cpu_seconds() -> float:
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return usage.ru_utime + usage.ru_stime
+def _run(store: Path, job: Path, overrides: list[str]) -> ChildRun:
+    before = resource.getrusage(resource.RUSAGE_SELF)
+    summary = run_job(store, job, load_config("cpu", overrides))
+    after = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+    return ChildRun(summary, cpu, after.ru_maxrss / 1024)
 
 
 def print_table(results: list[SequenceResult], seeds: int) -> None:
