@@ -156,14 +156,13 @@ def run_sequence(name: str, store: Path, root: Path, seeds: int, overrides: list
         job = root / f"{name}_seed{seed}"
         run = run_in_child(store, job, [*overrides, f"seed={seed}"])
         summary = run.summary
-        cpu = run.cpu_seconds
         result.peak_rss_mb.append(run.peak_rss_mb)
         _, poses = read_tum(job / "trajectory.txt")
         events = [json.loads(line) for line in (job / LOG_FILE).read_text().splitlines()]
         result.ates.append(summary.ate_rmse_m)
         result.rpes.append(rpe(poses, gt)["translation_rmse"])
         result.lengths.append(path_length(poses[:, :3, 3]))
-        result.cpu_per_frame.append(cpu / n)
+        result.cpu_per_frame.append(run.cpu_seconds / n)
         result.fps.append(summary.fps)
         result.tracking_per_frame.append(summary.stage_seconds["tracking"] / n)
         result.median_iterations.append(
