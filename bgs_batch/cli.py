@@ -161,6 +161,10 @@ def _convert_plan(ctx: click.Context, source: Path, output: Path | None, options
               type=click.FloatRange(min=0, min_open=True),
               help="Units per metre of the depth PNGs: 5000 for TUM RGB-D, 1000 (millimetres) "
                    "for most RealSense, Azure Kinect and OpenLORIS exports in this layout.")
+@click.option("--readout", type=float, metavar="SECONDS",
+              help="Seconds over which the camera reads an image's rows out (rolling shutter; "
+                   "0: global shutter). Default: readout.txt, else 0.03 for the freiburg1/2/3 "
+                   "Kinect-class cameras, else 0. `bgs run` moves the rows to one instant.")
 @_conversion_options
 @click.pass_context
 def convert_tum(ctx: click.Context, folder: Path, output: Path | None, **options) -> None:

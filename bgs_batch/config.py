@@ -11,6 +11,7 @@ import dataclasses
 import math
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal
 
 from bgs_batch.errors import BgsError
@@ -309,6 +310,11 @@ class Config:
     # enough to help on recordings nobody tuned on (docs/experiments.md)
     align_depth_time: bool = False
     depth_time_lag: float = 0.0
+    # Seconds over which the camera reads its rows out, top to bottom; each frame is moved to one
+    # instant by the camera's constant-velocity motion before it is tracked and mapped
+    # (`slam.rolling_shutter`, docs/method.md §6). 0: a global shutter, as the paper assumes;
+    # None: the store's value (`bgs inspect` shows it; the converter's for the camera, else 0)
+    rolling_shutter_readout: float | None = 0.0
     checkpoint_every: int = 10  # frames between job checkpoints (and on SIGTERM/SIGUSR1/SIGINT)
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -358,6 +364,7 @@ RANGES: dict[str, Range] = {
     "crop_edge": NON_NEGATIVE,  # and less than half the image (`check_crop`, per store)
     "max_depth": POSITIVE,
     "depth_time_lag": Range(-1, 1),  # s; either sensor may lag the other
+    "rolling_shutter_readout": Range(0, 1),  # s
     "checkpoint_every": COUNT,
     "uncertainty.initial_logit": ANY,
     "uncertainty.map_floor": POSITIVE,
@@ -525,6 +532,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         # report every pose given the frames after it too (a batch run has them all): a
         # constant-velocity smoother at the tracked trajectory's own maximum-likelihood noise
         "smoothing.enabled": True,
+        # rows read at their own instants moved to the frame's: a Kinect-class camera turning
+        # at fr1/rpy's speed otherwise shows a pose biased along the turn (docs/experiments.md)
+        "rolling_shutter_readout": None,
         "seeding.new_submap_points": 30_000,
         "seeding.new_submap_gradient_points": 15_000,
         "seeding.new_frame_points": 10_000,
@@ -568,13 +578,26 @@ def check(config: Config) -> None:
                           f"smoothing.log_ratio_min={sm.log_ratio_min}")
 
 
-def for_store(config: Config, recommended_crop: int, store: str) -> tuple[Config, dict[str, str]]:
-    """The config with the store's recommendations filled in where it leaves them open, and
-    where each such value came from (for ``config.json``)."""
-    if config.crop_edge is not None:
-        return config, {"crop_edge": "set (--set crop_edge=N)"}
-    resolved = dataclasses.replace(config, crop_edge=recommended_crop)
-    return resolved, {"crop_edge": f"the store's recommended crop ({store}; `bgs inspect`)"}
+def for_store(config: Config, store: StoreFacts) -> tuple[Config, dict[str, str]]:
+    """The config with the store's values filled in where it leaves them open (None), and where
+    each such value came from (for ``config.json``)."""
+    resolved, sources = config, {}
+    for key, value in (("crop_edge", store.crop_edge),
+                       ("rolling_shutter_readout", store.rolling_shutter_readout)):  # fmt: skip
+        if getattr(config, key) is None:
+            resolved = dataclasses.replace(resolved, **{key: value})
+            sources[key] = f"the store's value ({store.path.name}; `bgs inspect`)"
+        else:
+            sources[key] = f"set (--set {key}=…)"
+    return resolved, sources
+
+
+class StoreFacts(typing.Protocol):
+    """What `for_store` reads of a frame store (`bgs_batch.store.FrameStore`)."""
+
+    path: Path
+    crop_edge: int
+    rolling_shutter_readout: float
 
 
 def check_crop(crop_edge: int, width: int, height: int) -> None:

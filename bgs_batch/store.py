@@ -11,7 +11,9 @@ Layout::
     attributes   schema_version, source_format, source_path, sequence, depth_scale, distortion,
                  distortion_applied, width, height, created_by, provenance (JSON of every choice);
                  optional: crop_edge (pixels per border the reference systems crop for this
-                 camera; `bgs run` applies it by default; absent = 0)
+                 camera; `bgs run` applies it by default; absent = 0),
+                 rolling_shutter_readout (seconds over which the camera reads its rows out;
+                 the `cpu` preset moves them to one instant; absent = 0, a global shutter)
 
 Frames are deflated in worker threads with ISA-L (5x faster than zlib at level 1, and it
 releases the GIL) and written as raw chunks, so conversion uses every core; the files stay plain
@@ -41,6 +43,7 @@ from bgs_batch.errors import InputError, OutputExistsError
 SCHEMA_VERSION = 1
 DEFAULT_COMPRESSION_LEVEL = 1  # ISA-L deflate levels are 0-3; 1 is the speed/size sweet spot
 READ_WORKERS = 2
+MAX_READOUT_S = 1.0  # a row readout of a second or more is no video camera's
 READ_PREFETCH = 4
 REQUIRED_ATTRS = (
     "schema_version",
@@ -90,6 +93,7 @@ class StoreMeta:
     distortion_applied: bool = False  # True: images were undistorted with `distortion`
     has_gt: bool = False
     crop_edge: int = 0  # recommended border crop (pixels per side); 0: none
+    rolling_shutter_readout: float = 0.0  # s over which the rows are read out; 0: global shutter
     provenance: dict[str, Any] = field(default_factory=dict)
 
 
@@ -274,6 +278,8 @@ class FrameStoreWriter:
             crop_edge=int(meta.crop_edge),
             provenance=json.dumps(meta.provenance, sort_keys=True),
         )
+        if meta.rolling_shutter_readout:
+            f.attrs["rolling_shutter_readout"] = float(meta.rolling_shutter_readout)
         validate(f, self.tmp)
         f.close()
         commit(self.tmp, self.path)
@@ -332,6 +338,10 @@ def validate(f: h5py.File, path: Path | str) -> None:
     if rgb.ndim == 4 and not 0 <= 2 * crop < min(rgb.shape[1:3]):
         problems.append(f"crop_edge {crop} must be >= 0 and leave part of the "
                         f"{rgb.shape[2]}x{rgb.shape[1]} image")  # fmt: skip
+    readout = float(f.attrs.get("rolling_shutter_readout", 0.0))
+    if not 0 <= readout < MAX_READOUT_S:
+        problems.append(f"rolling_shutter_readout {readout} must be >= 0 and below "
+                        f"{MAX_READOUT_S} s")  # fmt: skip
     if len(np.atleast_1d(f.attrs["distortion"])) != 5:
         problems.append("distortion must hold 5 coefficients (k1 k2 p1 p2 k3)")
     if "pose_gt" in f:
@@ -395,6 +405,7 @@ class FrameStore:
         self.depth_scale = float(self.attrs["depth_scale"])
         self.width, self.height = int(self.attrs["width"]), int(self.attrs["height"])
         self.crop_edge = int(self.attrs.get("crop_edge", 0))  # recommended; stores before it: 0
+        self.rolling_shutter_readout = float(self.attrs.get("rolling_shutter_readout", 0.0))
         self.provenance: dict[str, Any] = json.loads(self.attrs["provenance"])
         self._poses = self._file["pose_gt"][()] if "pose_gt" in self._file else None
         self._fast = _is_our_pipeline(self._rgb) and _is_our_pipeline(self._depth)

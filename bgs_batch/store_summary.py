@@ -32,6 +32,7 @@ class StoreSummary:
     distortion: list[float]
     distortion_applied: bool
     crop_edge: int  # recommended border crop, pixels per side (`bgs run` applies it)
+    rolling_shutter_readout: float  # s over which the rows are read out (0: global shutter)
     source_format: str
     source_path: str
     sequence: str
@@ -77,6 +78,7 @@ def summarize(store: FrameStore) -> StoreSummary:
         distortion=[float(x) for x in np.atleast_1d(a["distortion"])],
         distortion_applied=bool(a["distortion_applied"]),
         crop_edge=store.crop_edge,
+        rolling_shutter_readout=store.rolling_shutter_readout,
         source_format=str(a["source_format"]),
         source_path=str(a["source_path"]),
         sequence=str(a["sequence"]),
@@ -106,6 +108,9 @@ def print_summary(summary: StoreSummary, console: Console | None = None) -> None
         + (" (applied: images undistorted)" if s.distortion_applied else " (not applied)"),
         "crop": (f"{s.crop_edge} px per border, applied by `bgs run` (--set crop_edge=N "
                  "overrides)" if s.crop_edge else "none recommended"),
+        "shutter": (f"rolling, rows read out over {1000 * s.rolling_shutter_readout:.1f} ms; the "
+                    "`cpu` preset moves them to one instant (--set rolling_shutter_readout=S "
+                    "overrides)" if s.rolling_shutter_readout else "global"),
         "created by": s.created_by,
     }
     rows |= {f"  {key}": str(value) for key, value in sorted(s.provenance.items())}

@@ -9,7 +9,8 @@ the Kinect v1 noise model, quantisation and holes. Everything is drawn from ``nu
 keyed by the seed, so a seed gives byte-identical files, and is vectorised over pixels.
 
 The output is exactly a TUM RGB-D directory (``rgb/``, ``depth/``, ``rgb.txt``, ``depth.txt``,
-``groundtruth.txt``) plus ``calibration.txt`` (``fx fy cx cy``, the ETH3D convention) and
+``groundtruth.txt``) plus ``calibration.txt`` (``fx fy cx cy``, the ETH3D convention),
+``readout.txt`` for a rolling shutter (the rows' readout in seconds, recorded by the converter) and
 ``depth_sigma/``: per depth image, the standard deviation of the noise drawn for each reading
 (16-bit PNG, same name as the depth image, ``DEPTH_SIGMA_SCALE`` units per metre), the truth
 against which a sensor-noise model can be scored (`read_depth_sigma`). Ground
@@ -35,6 +36,7 @@ from bgs_batch.errors import InputError, OutputExistsError
 from bgs_batch.geometry import matrix_to_quat_xyzw
 from bgs_batch.signals import interruptible
 from converters.image_codec import read, write_png
+from converters.tum import READOUT_FILE
 
 # Independent random streams derived from the seed (the second entry of the generator key).
 _SCENE_STREAM, _PATH_STREAM, _SENSOR_STREAM, _SHAKE_STREAM = 0, 1, 2, 3
@@ -668,6 +670,8 @@ def _write_sequence(
         header = _TUM_HEADER.format(what=what, seed=config.seed, columns=columns)
         (root / name).write_text(header + "".join(lines))
     (root / "calibration.txt").write_text(" ".join(f"{x:.9f}" for x in config.intrinsics) + "\n")
+    if config.readout > 0:  # seconds, which `bgs convert tum` records for `bgs run`
+        (root / READOUT_FILE).write_text(f"{config.readout / config.fps:.9f}\n")
 
 
 def encode_depth_sigma(sigma: np.ndarray) -> np.ndarray:

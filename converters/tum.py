@@ -4,11 +4,13 @@ File formats follow the TUM RGB-D benchmark: list files of ``timestamp filename`
 comments, 16-bit depth PNGs with 5000 units per metre (other sensors' exports in this layout often
 use millimetres: ``depth_scale``), and ``timestamp tx ty tz qx qy qz qw`` ground truth
 (camera-to-world of the colour camera's optical centre). Folders in the ETH3D SLAM layout carry
-their pinhole intrinsics in ``calibration.txt`` (``fx fy cx cy``).
+their pinhole intrinsics in ``calibration.txt`` (``fx fy cx cy``); ``bgs synth`` adds
+``readout.txt`` (the seconds over which its rolling shutter reads the rows out) when it has one.
 
 The defaults give what the reference systems feed their SLAM: images of a freiburg1/2 camera are
 undistorted with its published coefficients, and the store records the border crop those
-systems use for the camera, which ``bgs run`` applies unless told otherwise.
+systems use for the camera, which ``bgs run`` applies unless told otherwise; the store also
+records the camera's rolling-shutter readout, which the `cpu` preset corrects.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import numpy as np
 
 from bgs_batch.errors import InputError
 from bgs_batch.geometry import interpolate_poses
-from bgs_batch.store import StoreMeta
+from bgs_batch.store import MAX_READOUT_S, StoreMeta
 from converters import image_codec
 from converters.association import associate, association_summary
 from converters.image_codec import ImageDecodeError
@@ -35,6 +37,12 @@ QUATERNION_NORM_TOLERANCE = 1e-2  # TUM prints 4 decimals; anything further off 
 TUM_IMAGE_SIZE = (640, 480)  # the size the published calibrations (and their crops) are for
 PLAUSIBLE_MEDIAN_DEPTH_M = (0.1, 20.0)  # RGB-D sensors; outside it, the depth scale is wrong
 DEPTH_SAMPLES = 3  # depth images whose median the scale check reads (first, middle, last)
+# The TUM cameras (Kinect v1 in fr1/fr2, Asus Xtion in fr3) are PrimeSense-class rolling-shutter
+# CMOS cameras; their rows are taken as read out over 0.9 of the 30 Hz frame interval, the value
+# `bgs synth --rolling-shutter` simulates (Kerl et al., ICCV 2015, simulate 28 ms for such a
+# camera). A physical assumption, not a value fitted to a recording (docs/conversion-defaults.md)
+KINECT_READOUT_S = 0.9 / 30
+READOUT_FILE = "readout.txt"  # `bgs synth`: the simulated readout in seconds
 
 
 @dataclass(frozen=True)
@@ -46,6 +54,7 @@ class Camera:
     distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
     crop_edge: int = 0
     crop_edge_source: str = ""
+    readout: float = 0.0  # s over which the rows are read out (0: global shutter)
 
     @property
     def matrix(self) -> np.ndarray:
@@ -59,11 +68,11 @@ class Camera:
 # in SplaTAM's (LoopSplat crops fr3 by 50 px because it reuses the fr1 calibration there)
 TUM_CAMERAS: dict[str, Camera] = {
     "freiburg1": Camera((517.3, 516.5, 318.6, 255.3), (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
-                        50, "LoopSplat's and BayesianGS's TUM fr1 camera"),
+                        50, "LoopSplat's and BayesianGS's TUM fr1 camera", KINECT_READOUT_S),
     "freiburg2": Camera((520.9, 521.0, 325.1, 249.7), (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
-                        8, "LoopSplat's and BayesianGS's TUM fr2 camera"),
+                        8, "LoopSplat's and BayesianGS's TUM fr2 camera", KINECT_READOUT_S),
     "freiburg3": Camera((535.4, 539.2, 320.1, 247.6), crop_edge=8,
-                        crop_edge_source="SplaTAM's TUM fr3 camera"),
+                        crop_edge_source="SplaTAM's TUM fr3 camera", readout=KINECT_READOUT_S),
 }  # fmt: skip
 
 
@@ -75,6 +84,7 @@ class TumOptions:
     gt_max_gap: float = 0.1  # s, max spacing of the two GT samples bracketing a frame
     intrinsics: tuple[float, float, float, float] | None = None  # overrides detection
     distortion: tuple[float, float, float, float, float] | None = None  # overrides detection
+    readout: float | None = None  # s, rolling-shutter readout; overrides detection
     undistort: bool = True  # with known, non-zero distortion; False stores the raw images
     depth_scale: float = TUM_DEPTH_SCALE  # units per metre of the depth PNGs
     stride: int = 1
@@ -151,8 +161,9 @@ def _parse_float(text: str, path: Path, number: int) -> float:
 
 
 def detect_camera(folder: Path, options: TumOptions) -> tuple[Camera, dict[str, str]]:
-    """Pick intrinsics and distortion: options > ``calibration.txt`` > freiburg name. The
-    reference crop comes with a published calibration only, not with ``--intrinsics``."""
+    """Pick intrinsics, distortion and readout: options > ``calibration.txt`` (and
+    ``readout.txt``) > freiburg name. The reference crop comes with a published calibration
+    only, not with ``--intrinsics``; the readout is the sensor's, whatever its intrinsics."""
     found: Camera | None = None
     source = ""
     calibration = folder / "calibration.txt"
@@ -176,10 +187,29 @@ def detect_camera(folder: Path, options: TumOptions) -> tuple[Camera, dict[str, 
         "intrinsics_source": "--intrinsics" if options.intrinsics else source,
         "distortion_source": "--distortion" if options.distortion else (source or "none (zero)"),
     }
-    camera = Camera(tuple(map(float, intrinsics)), tuple(map(float, distortion)))
+    readout, provenance["rolling_shutter_readout_source"] = _readout(folder, options, found, source)
+    camera = Camera(tuple(map(float, intrinsics)), tuple(map(float, distortion)), readout=readout)
     if found is not None and options.intrinsics is None:  # the calibration's crop comes along
         camera = replace(camera, crop_edge=found.crop_edge, crop_edge_source=found.crop_edge_source)
     return camera, provenance
+
+
+def _readout(folder: Path, options: TumOptions, found: Camera | None, source: str
+             ) -> tuple[float, str]:  # fmt: skip
+    """The rolling-shutter readout (s) and where it came from: ``--readout`` > ``readout.txt``
+    > the published camera's > 0 (a global shutter)."""
+    if options.readout is not None:
+        return float(options.readout), "--readout"
+    path = folder / READOUT_FILE
+    if path.is_file():
+        values = [_parse_float(x, path, 1) for x in path.read_text().split()]
+        if len(values) != 1 or not 0 <= values[0] < MAX_READOUT_S:
+            raise InputError(f"{path}: expected one number of seconds, >= 0 and below "
+                             f"{MAX_READOUT_S}")  # fmt: skip
+        return values[0], READOUT_FILE
+    if found is not None and found.readout:
+        return found.readout, f"{source}: PrimeSense-class rolling shutter"
+    return 0.0, "none: a global shutter (pass --readout SECONDS for a rolling shutter)"
 
 
 @dataclass(frozen=True)
@@ -314,6 +344,7 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
         distortion_applied=bool(applied),
         has_gt=poses is not None,
         crop_edge=crop_edge,
+        rolling_shutter_readout=camera.readout,
         provenance=provenance,
     )
     notes = (pairs.summary, *_depth_scale_warnings(median_depth, options.depth_scale))
@@ -328,6 +359,9 @@ def _check_options(folder: Path, options: TumOptions) -> None:
         raise InputError("--stride and --max-frames must be at least 1")
     if not options.depth_scale > 0:
         raise InputError(f"--depth-scale must be positive, got {options.depth_scale}")
+    if options.readout is not None and not 0 <= options.readout < MAX_READOUT_S:
+        raise InputError(f"--readout must be >= 0 and below {MAX_READOUT_S} s, got "
+                         f"{options.readout}")  # fmt: skip
 
 
 @dataclass(frozen=True)

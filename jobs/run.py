@@ -90,14 +90,15 @@ def run_job(
 ) -> RunSummary:
     """Run SLAM over the store (or its first `max_frames`) and write the job directory.
 
-    Settings the config leaves to the store (``crop_edge`` None) take the store's value. Refuses
+    Settings the config leaves to the store (``crop_edge``, ``rolling_shutter_readout``: None)
+    take the store's value. Refuses
     a job directory locked by a live process, or made for another store or settings. `force`
     starts the job over: the previous run's directory is moved aside whole (`set_aside`) and
     the run begins at frame 0, so its record, settings and outputs never mix with the new run's.
     """
     set_threads(cfg.threads)
     with FrameStore(store_path) as store:  # validated before the job directory is taken
-        cfg, sources = for_store(cfg, store.crop_edge, store_path.name)
+        cfg, sources = for_store(cfg, store)
         check_crop(cfg.crop_edge, store.width, store.height)
         job_dir.mkdir(parents=True, exist_ok=True)
         if force and (moved := set_aside(job_dir)) is not None:

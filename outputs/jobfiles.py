@@ -7,7 +7,7 @@ the fix, so an export that needs only the submaps works on a job that lacks, say
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -53,13 +53,18 @@ class FrameEvent:
     elapsed_s: float | None
     # the warp that moved the frame's depth image to its colour image's time (None: not moved)
     depth_motion: np.ndarray | None = None
+    # the camera's motion over the frame's rolling-shutter readout (None: not rectified), and on
+    # the second frame the first one's, known only then (`Slam._rectify_first_keyframe`)
+    readout_motion: np.ndarray | None = None
+    first_readout_motion: np.ndarray | None = None
 
     @classmethod
     def from_json(cls, event: dict[str, Any]) -> FrameEvent:
         return cls(int(event["frame"]), float(event["timestamp"]), bool(event["keyframe"]),
                    str(event["reason"]), event.get("score_color"), event.get("score_depth"),
                    int(event["submap"]), _rigid(event["pose"]), event.get("elapsed_s"),
-                   _rigid(event.get("depth_motion")))  # fmt: skip
+                   _rigid(event.get("depth_motion")), _rigid(event.get("readout_motion")),
+                   _rigid(event.get("first_readout_motion")))  # fmt: skip
 
 
 def _rigid(rows: list[float] | None) -> np.ndarray | None:
@@ -127,6 +132,8 @@ class FinishedJob:
                                  ) from err  # fmt: skip
         if not events or [e.frame for e in events] != list(range(len(events))):
             raise incomplete(self.job_dir, f"{LOG_FILE} does not list frames 0, 1, 2, … in order")
+        if len(events) > 1 and events[1].first_readout_motion is not None:  # the SLAM re-mapped
+            events[0] = replace(events[0], readout_motion=events[1].first_readout_motion)
         return events
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:

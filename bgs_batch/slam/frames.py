@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from bgs_batch.config import Config
 from bgs_batch.render import Camera
 from bgs_batch.slam.depth_timing import warp_depth
+from bgs_batch.slam.rolling_shutter import rectify
 from bgs_batch.store import Frame
 
 
@@ -28,7 +29,8 @@ class Level:
 
 
 def prepare_frame(frame: Frame, intrinsics: np.ndarray, cfg: Config,
-                  depth_motion: np.ndarray | None = None) -> tuple[Level, Level]:  # fmt: skip
+                  depth_motion: np.ndarray | None = None,
+                  readout_motion: np.ndarray | None = None) -> tuple[Level, Level]:  # fmt: skip
     """The frame at input resolution (its depth moved by `depth_motion` to the colour image's
     time, `depth_timing`; then cropped by ``crop_edge``, depth clipped) and at mapping
     resolution: what the SLAM and the exports see of a frame."""
@@ -36,7 +38,10 @@ def prepare_frame(frame: Frame, intrinsics: np.ndarray, cfg: Config,
     depth = frame.depth
     if depth_motion is not None:
         depth = warp_depth(depth, intrinsics, depth_motion)
-    rgb, depth = crop_and_clip(frame.rgb, depth, crop, cfg.max_depth)
+    rgb = frame.rgb
+    if readout_motion is not None:
+        rgb, depth = rectify(rgb, depth, intrinsics, readout_motion)
+    rgb, depth = crop_and_clip(rgb, depth, crop, cfg.max_depth)
     full = to_level(rgb, depth, camera_for(intrinsics, rgb.shape[1], rgb.shape[0], crop))
     return full, downsample(full, cfg.mapping.downscale)
 

@@ -22,7 +22,7 @@ from bgs_batch.atomic import save_torch
 from bgs_batch.config import Config
 from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.calibration import DepthGains, depth_samples, fit_depth_gains
-from bgs_batch.slam.depth_timing import depth_motion
+from bgs_batch.slam.depth_timing import depth_motion, interval_motion
 from bgs_batch.slam.frames import Level, prepare_frame
 from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY, GaussianMap
 from bgs_batch.slam.keyframes import KeyframeSelector
@@ -74,6 +74,8 @@ class Slam:
     # per keyframe, the warp that moved its depth image to its colour image's time (frames
     # without one had nothing to move): keyframes are re-read on resume and for refinement
     depth_motions: dict[int, np.ndarray] = field(default_factory=dict)
+    # per keyframe, the camera's motion over its rows' readout (`rolling_shutter`)
+    readout_motions: dict[int, np.ndarray] = field(default_factory=dict)
     submaps: list[SubmapRecord] = field(default_factory=list)
     keyframe_frames: list[int] = field(default_factory=list)
     mapping_calls: int = 0
@@ -96,26 +98,38 @@ class Slam:
         # reference, so that the drift moves the new submap rigidly instead of adding a jump
         # to the velocity (None: the previous pose itself)
         self.drifted_prev: np.ndarray | None = None
+        # the first frame while its rows wait for a velocity to be rectified with (the second
+        # frame's), `_rectify_first_keyframe`
+        self.unrectified_first: Frame | None = None
 
-    def prepare(self, frame: Frame, depth_motion: np.ndarray | None = None
-                ) -> tuple[Level, Level]:  # fmt: skip
+    def prepare(self, frame: Frame, depth_motion: np.ndarray | None = None,
+                readout_motion: np.ndarray | None = None) -> tuple[Level, Level]:  # fmt: skip
         """The frame at input resolution and at mapping resolution (`frames.prepare_frame`)."""
-        return prepare_frame(frame, self.intrinsics, self.cfg, depth_motion)
+        return prepare_frame(frame, self.intrinsics, self.cfg, depth_motion, readout_motion)
 
     def process(self, frame: Frame) -> dict[str, Any]:
         """Track, select and map one frame; return its log event (steps 1-5 of `bgs_batch.slam`)."""
         totals_before = asdict(self.timings)
         motion = self._depth_motion(frame)
-        full, level = self.prepare(frame, motion)
+        readout = self._readout_motion()
+        full, level = self.prepare(frame, motion, readout)
         event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
-        if motion is not None:  # the exports prepare the frame the same way from the log
-            event["depth_motion"] = [float(x) for x in motion[:3].ravel()]
+        # the exports prepare the frame the same way from the log
+        for key, value in (("depth_motion", motion), ("readout_motion", readout)):
+            if value is not None:
+                event[key] = [float(x) for x in value[:3].ravel()]
         with self.timings.measure("sensor"), torch.no_grad():
             scale = self.cfg.uncertainty.sensor_downscale
             sensor_c, sensor_d = self.sensor(level, scale)
         c2w, score_c, score_d = self._track(full, sensor_c, sensor_d, event)
         self.poses.append(c2w)
         self.timestamps.append(frame.timestamp)
+        if self.unrectified_first is not None and len(self.poses) == 2:
+            readout = self._rectify_first_keyframe(event)
+            full, level = self.prepare(frame, motion, readout)
+            event["readout_motion"] = [float(x) for x in readout[:3].ravel()]
+        elif not self.poses[:-1] and self._readout_active():
+            self.unrectified_first = frame
         first_of_submap = not self.active_keyframes
         if not first_of_submap and self._should_switch(frame.index, c2w):
             c2w = self._switch_submap(frame.index, event)
@@ -125,6 +139,8 @@ class Slam:
         if decision.keyframe:
             if motion is not None:
                 self.depth_motions[frame.index] = motion
+            if readout is not None:
+                self.readout_motions[frame.index] = readout
             self._add_keyframe(frame.index, full, level, c2w, first_of_submap, event)
         event.update(submap=len(self.submaps), gaussians=len(self.gmap),
                      pose=[float(x) for x in c2w[:3].ravel()],
@@ -141,6 +157,37 @@ class Slam:
         before2 = self.poses[-2] if self.drifted_prev is None else self.drifted_prev
         return depth_motion(before2, self.poses[-1], self.timestamps[-1] - self.timestamps[-2],
                             frame.depth_time_offset - cfg.depth_time_lag)  # fmt: skip
+
+    def _readout_active(self) -> bool:
+        return (self.cfg.rolling_shutter_readout or 0.0) > 0  # None: no store resolved it
+
+    def _readout_motion(self) -> np.ndarray | None:
+        """The camera's motion over the next frame's readout at the last interval's velocity
+        (`rolling_shutter_readout`; None: a global shutter, or no velocity yet)."""
+        readout = self.cfg.rolling_shutter_readout
+        if not self._readout_active() or len(self.timestamps) < 2:
+            return None
+        before2 = self.poses[-2] if self.drifted_prev is None else self.drifted_prev
+        interval = self.timestamps[-1] - self.timestamps[-2]
+        if not interval > 0:
+            return None
+        return interval_motion(before2, self.poses[-1], readout / interval)
+
+    def _rectify_first_keyframe(self, event: dict[str, Any]) -> np.ndarray:
+        """Once the second frame gives the first velocity, map the first keyframe again from its
+        rectified rows (no velocity was known when it was mapped): a map of raw rows would bias
+        every rectified frame tracked against it. Returns the readout motion of that velocity,
+        which the second frame shares (constant velocity)."""
+        first, self.unrectified_first = self.unrectified_first, None
+        readout = self._readout_motion()
+        self.readout_motions[first.index] = readout
+        event["first_readout_motion"] = [float(x) for x in readout[:3].ravel()]
+        level = self.prepare(first, self.depth_motions.get(first.index), readout)[1]
+        with self.timings.measure("mapping"):
+            self.gmap = GaussianMap()
+            self.active_keyframes = [Keyframe(first.index, level, self.poses[0])]
+            self.mapper.map(self.gmap, self.active_keyframes, True, self.rng)
+        return readout
 
     def _track(self, full: Level, sensor_c: torch.Tensor, sensor_d: torch.Tensor,
                event: dict[str, Any]) -> tuple[np.ndarray, float | None, float | None]:  # fmt: skip
@@ -245,6 +292,7 @@ class Slam:
             "poses": torch.from_numpy(poses),
             "timestamps": list(self.timestamps),
             "depth_motions": {i: torch.from_numpy(m) for i, m in self.depth_motions.items()},
+            "readout_motions": {i: torch.from_numpy(m) for i, m in self.readout_motions.items()},
             "submaps": [asdict(s) for s in self.submaps],
             "keyframe_frames": list(self.keyframe_frames),
             "mapping_calls": self.mapping_calls,
@@ -270,6 +318,8 @@ class Slam:
         self.timestamps = [float(t) for t in state.get("timestamps", [])]
         self.depth_motions = {int(i): np.ascontiguousarray(m.numpy())
                               for i, m in state.get("depth_motions", {}).items()}  # fmt: skip
+        self.readout_motions = {int(i): np.ascontiguousarray(m.numpy())
+                                for i, m in state.get("readout_motions", {}).items()}  # fmt: skip
         self.submaps = [SubmapRecord(**s) for s in state["submaps"]]
         self.keyframe_frames = list(state["keyframe_frames"])
         self.mapping_calls = int(state["mapping_calls"])
@@ -288,12 +338,15 @@ class Slam:
         torch.set_rng_state(state["torch_rng"])
         if "loop_closure" in state:  # absent in older checkpoints
             self.loop_closer.load_state_dict(state["loop_closure"])
+        if len(self.poses) == 1 and self._readout_active():  # stopped before the second frame
+            self.unrectified_first = read_frame(0)
         drifted = state.get("drifted_prev")
         self.drifted_prev = None if drifted is None else np.ascontiguousarray(drifted.numpy())
 
     def _reread_keyframe(self, index: int, read_frame: Callable[[int], Frame]) -> Keyframe:
         """Keyframe `index` from the store, prepared as when it was mapped."""
-        level = self.prepare(read_frame(index), self.depth_motions.get(index))[1]
+        level = self.prepare(read_frame(index), self.depth_motions.get(index),
+                             self.readout_motions.get(index))[1]
         return Keyframe(index, level, self.poses[index])
 
     def finish(self, read_frame: Callable[[int], Frame]) -> None:

@@ -292,6 +292,40 @@ def test_no_crop_nor_undistortion_for_other_sizes_or_given_intrinsics(tum_folder
         assert store.crop_edge == 0
 
 
+def test_the_rolling_shutter_readout_comes_from_the_camera_a_file_or_the_option(tmp_path):
+    fr1 = make_tum_folder(tmp_path / "a", frames=2)  # a freiburg1 name: the Kinect's readout
+    assert convert(fr1, tmp_path / "fr1.h5").exit_code == 0
+    with FrameStore(tmp_path / "fr1.h5") as store:
+        assert store.rolling_shutter_readout == pytest.approx(0.03)
+        assert "rolling shutter" in store.provenance["rolling_shutter_readout_source"]
+    shown = CliRunner().invoke(main, ["inspect", str(tmp_path / "fr1.h5")])
+    assert "rows read out over 30.0 ms" in shown.output
+    assert convert(fr1, tmp_path / "gs.h5", "--readout", "0").exit_code == 0
+    with FrameStore(tmp_path / "gs.h5") as store:  # 0: global shutter, no attribute written
+        assert store.rolling_shutter_readout == 0 and "rolling_shutter_readout" not in store.attrs
+    other = make_tum_folder(tmp_path / "b", frames=2, name="my_camera")
+    (other / "calibration.txt").write_text("20 20 16 12\n")
+    assert convert(other, tmp_path / "other.h5").exit_code == 0
+    with FrameStore(tmp_path / "other.h5") as store:  # an unknown camera: a global shutter
+        assert store.rolling_shutter_readout == 0
+    (other / "readout.txt").write_text("0.025\n")
+    assert convert(other, tmp_path / "file.h5").exit_code == 0
+    with FrameStore(tmp_path / "file.h5") as store:
+        assert store.rolling_shutter_readout == pytest.approx(0.025)
+        assert store.provenance["rolling_shutter_readout_source"] == "readout.txt"
+
+
+@pytest.mark.parametrize(("text", "option"), [("-0.01", None), ("0.01 0.02", None),
+                                              ("fast", None), (None, "1.5"), (None, "-1")])
+def test_a_bad_readout_is_refused_and_writes_nothing(tmp_path, text, option):
+    folder = make_tum_folder(tmp_path / "a", frames=2)
+    if text is not None:
+        (folder / "readout.txt").write_text(text)
+    result = convert(folder, tmp_path / "s.h5", *(["--readout", option] if option else []))
+    assert result.exit_code == 3 and "readout" in result.output
+    assert "Traceback" not in result.output and not list(tmp_path.glob("s.h5*"))
+
+
 def test_depth_scale_is_stored_and_an_implausible_median_warns(tum_folder, tmp_path):
     # the folder's depth is 0.5-4 m at 5000 per metre; read as millimetres it is 2.5-20 m
     result = convert(tum_folder, tmp_path / "mm.h5", "--depth-scale", "1000")

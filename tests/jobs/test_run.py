@@ -261,12 +261,18 @@ def test_the_store_s_recommended_crop_is_applied_unless_set(tmp_path):
     assert run("default").exit_code == 0
     config = json.loads((tmp_path / "default" / "config.json").read_text())
     assert config["settings"]["crop_edge"] == 50
-    assert config["sources"]["crop_edge"].startswith("the store's recommended crop (fr1.h5")
+    assert config["sources"]["crop_edge"].startswith("the store's value (fr1.h5")
     record = json.loads((tmp_path / "default" / "job.json").read_text())
     assert record["config"]["crop_edge"] == 50  # exports and resumes use the resolved value
+    # the Kinect's rolling shutter comes from the store too, and the frames say how they moved
+    assert config["settings"]["rolling_shutter_readout"] == pytest.approx(0.03)
+    assert config["sources"]["rolling_shutter_readout"].startswith("the store's value")
     assert run("set", "crop_edge=0").exit_code == 0
     config = json.loads((tmp_path / "set" / "config.json").read_text())
     assert config["settings"]["crop_edge"] == 0 and config["sources"]["crop_edge"].startswith("set")
+    assert run("global", "rolling_shutter_readout=0").exit_code == 0
+    config = json.loads((tmp_path / "global" / "config.json").read_text())
+    assert config["settings"]["rolling_shutter_readout"] == 0
     too_big = run("big", "crop_edge=240")
     assert too_big.exit_code == 2 and "leaves nothing of the 640x480 images" in too_big.output
     assert not (tmp_path / "big").exists()
