@@ -50,13 +50,13 @@ def rectify(rgb: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
     rotations, shifts = row_motions(readout_motion, height)
     v, u = np.mgrid[:height, :width].astype(np.float64)
 
-    def rays(u: np.ndarray, v: np.ndarray) -> np.ndarray:  # (H, W, 3), z = 1
-        return np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
+    ray_x, ray_y = (u - cx) / fx, (v - cy) / fy
 
     def image_motion(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        moved = np.einsum("hij,hwj->hwi", rotations, rays(u, v) * z[..., None]) + shifts[:, None]
-        return (fx * moved[..., 0] / moved[..., 2] + cx - u,
-                fy * moved[..., 1] / moved[..., 2] + cy - v)  # fmt: skip
+        x, y, z = ray_x * z, ray_y * z, z
+        moved = [x * rotations[:, i, 0:1] + y * rotations[:, i, 1:2] + z * rotations[:, i, 2:3]
+                 + shifts[:, i : i + 1] for i in range(3)]  # fmt: skip
+        return fx * moved[0] / moved[2] + cx - u, fy * moved[1] / moved[2] + cy - v
 
     valid = depth > 0
     z_guess = np.where(valid, depth, np.median(depth[valid]) if valid.any() else 1.0)
@@ -69,8 +69,9 @@ def rectify(rgb: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)  # fmt: skip
     z_src = _sample_surface(depth, map_u, map_v)
     src_row = np.clip(np.rint(map_v), 0, height - 1).astype(np.intp)
-    point = rays(map_u, map_v) * z_src[..., None]
-    z_new = np.einsum("hwj,hwj->hw", rotations[src_row, 2], point) + shifts[src_row, 2]
+    third = rotations[src_row, 2]  # each source row's z axis
+    z_new = (((map_u - cx) / fx * z_src) * third[..., 0] + ((map_v - cy) / fy * z_src)
+             * third[..., 1] + z_src * third[..., 2]) + shifts[src_row, 2]  # fmt: skip
     out_depth = np.where((z_src > 0) & (z_new > 0), z_new, 0.0).astype(np.float32)
     return out_rgb, out_depth
 
