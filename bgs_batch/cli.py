@@ -305,7 +305,8 @@ def inspect(store: Path, as_json: bool, verify: bool, workers: int) -> None:
                    "left and right; shake: little travel, fast roll/pitch/yaw like TUM fr1/rpy.")
 @click.option("--blur", is_flag=True, help="Motion blur: colour exposed over half a frame.")
 @click.option("--rolling-shutter", is_flag=True,
-              help="Rows read out top to bottom over 0.9 of a frame (colour and depth).")
+              help="Rows read out top to bottom over 0.9 of a frame (colour and depth); the "
+                   "readout goes to readout.txt, which `bgs convert tum` records.")
 @click.option("--holes", is_flag=True, help="Large depth holes (15 percent of the image).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT_DIR if it exists.")
 @click.pass_context
