@@ -62,6 +62,12 @@ class Timings:
         self.add(stage, time.perf_counter() - start)
 
 
+def logged_rows(transform: np.ndarray) -> list[float]:
+    """A 4×4 rigid transform as ``log.jsonl`` holds it: its top three rows (read back by
+    `outputs.jobfiles`)."""
+    return [float(x) for x in transform[:3].ravel()]
+
+
 @dataclass
 class Slam:
     """An uncertainty-aware Gaussian-splatting SLAM run over one sequence."""
@@ -117,7 +123,7 @@ class Slam:
         # the exports prepare the frame the same way from the log
         for key, value in (("depth_motion", motion), ("readout_motion", readout)):
             if value is not None:
-                event[key] = [float(x) for x in value[:3].ravel()]
+                event[key] = logged_rows(value)
         with self.timings.measure("sensor"), torch.no_grad():
             scale = self.cfg.uncertainty.sensor_downscale
             sensor_c, sensor_d = self.sensor(level, scale)
@@ -127,7 +133,7 @@ class Slam:
         if self.unrectified_first is not None and len(self.poses) == 2:
             readout = self._rectify_first_keyframe(event)
             full, level = self.prepare(frame, motion, readout)
-            event["readout_motion"] = [float(x) for x in readout[:3].ravel()]
+            event["readout_motion"] = logged_rows(readout)
         elif not self.poses[:-1] and self._readout_active():
             self.unrectified_first = frame
         first_of_submap = not self.active_keyframes
@@ -143,7 +149,7 @@ class Slam:
                 self.readout_motions[frame.index] = readout
             self._add_keyframe(frame.index, full, level, c2w, first_of_submap, event)
         event.update(submap=len(self.submaps), gaussians=len(self.gmap),
-                     pose=[float(x) for x in c2w[:3].ravel()],
+                     pose=logged_rows(c2w),
                      stage_s=self._stages_since(totals_before))  # fmt: skip
         return event
 
@@ -181,7 +187,7 @@ class Slam:
         first, self.unrectified_first = self.unrectified_first, None
         readout = self._readout_motion()
         self.readout_motions[first.index] = readout
-        event["first_readout_motion"] = [float(x) for x in readout[:3].ravel()]
+        event["first_readout_motion"] = logged_rows(readout)
         level = self.prepare(first, self.depth_motions.get(first.index), readout)[1]
         with self.timings.measure("mapping"):
             self.gmap = GaussianMap()
