@@ -1,7 +1,7 @@
 """The validation suite: the `cpu` preset beside Open3D's dense SLAM on recordings nobody tunes on.
 
-Usage: .venv/bin/python bench/validate.py [--seeds N] [--only NAME ...] [--set KEY=VALUE ...]
-       [--max-frames N] [--keep DIR]
+Usage: .venv/bin/python bench/validate.py [--seeds N] [--first-seed K] [--only NAME ...]
+       [--set KEY=VALUE ...] [--max-frames N] [--keep DIR]
 
 A change to tracking, mapping or a preset counts only when it holds here, on every sequence and
 over seeds, not only on the dev excerpt it was tried on. The sequences:
@@ -142,7 +142,7 @@ def make_stores(root: Path, only: list[str], max_frames: int | None) -> dict[str
     return stores
 
 
-def run_sequence(name: str, store: Path, root: Path, seeds: int, overrides: list[str]
+def run_sequence(name: str, store: Path, root: Path, seeds: range, overrides: list[str]
                  ) -> SequenceResult:  # fmt: skip
     """Open3D once and the cpu preset per seed on one store."""
     with FrameStore(store) as frames:
@@ -152,7 +152,7 @@ def run_sequence(name: str, store: Path, root: Path, seeds: int, overrides: list
         name, n, path_length(gt[:, :3, 3]), ate(o3d_poses[:, :3, 3], gt[:, :3, 3])["rmse"],
         rpe(o3d_poses, gt)["translation_rmse"], path_length(o3d_poses[:, :3, 3]), o3d_cpu / n,
     )  # fmt: skip
-    for seed in range(seeds):
+    for seed in seeds:
         job = root / f"{name}_seed{seed}"
         run = run_in_child(store, job, [*overrides, f"seed={seed}"])
         summary = run.summary
@@ -240,8 +240,8 @@ def _run(store: Path, job: Path, overrides: list[str]) -> ChildRun:
     return ChildRun(summary, cpu, after.ru_maxrss / 1024)
 
 
-def print_table(results: list[SequenceResult], seeds: int) -> None:
-    seed_columns = "".join(f"{f'seed {s}':>8}" for s in range(seeds))
+def print_table(results: list[SequenceResult], seeds: range) -> None:
+    seed_columns = "".join(f"{f'seed {s}':>8}" for s in seeds)
     header = (f"{'sequence':<9}{'frames':>7}{'Open3D':>8}{seed_columns}{'mean':>8}{'ratio':>7}"
               f"{'RPE bgs':>9}{'RPE O3D':>9}{'path bgs/true/O3D m':>21}{'cpu s/f':>9}"
               f"{'O3D':>6}{'fps':>6}{'track s/f':>10}{'iters':>6}{'warm':>6}"
@@ -304,7 +304,9 @@ def summary_line(results: list[SequenceResult]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=3, help="cpu-preset seeds 0..N-1")
+    parser.add_argument("--seeds", type=int, default=3, help="cpu-preset seeds: this many")
+    parser.add_argument("--first-seed", type=int, default=0, metavar="K",
+                        help="start at seed K (more seeds for a paired comparison)")  # fmt: skip
     parser.add_argument("--only", nargs="+", default=[], choices=[*REAL, *SYNTHETIC],
                         metavar="NAME", help="run only these sequences")  # fmt: skip
     parser.add_argument("--set", dest="overrides", action="append", default=[],
@@ -319,8 +321,9 @@ def main() -> None:
         load_config("cpu", args.overrides)
     except ConfigError as err:
         sys.exit(f"bench/validate.py: {err}")
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
     settings = " ".join(f"--set {o}" for o in args.overrides) or "no overrides"
-    print(f"bench/validate.py: cpu preset ({settings}), seeds 0-{args.seeds - 1}, beside "
+    print(f"bench/validate.py: cpu preset ({settings}), seeds {seeds[0]}-{seeds[-1]}, beside "
           "Open3D's dense SLAM (TSDF 1 cm)", flush=True)  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
@@ -329,10 +332,10 @@ def main() -> None:
         print(f"  kernels compiled or loaded in {warm_up(root / 'warmup'):.0f} s (not timed)",
               flush=True)  # fmt: skip
         stores = make_stores(root, args.only, args.max_frames)
-        results = [run_sequence(name, store, root, args.seeds, args.overrides)
+        results = [run_sequence(name, store, root, seeds, args.overrides)
                    for name, store in stores.items()]  # fmt: skip
     print()
-    print_table(results, args.seeds)
+    print_table(results, seeds)
     print(summary_line(results))
 
 
