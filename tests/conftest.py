@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from bgs_batch.geometry import matrix_to_quat_xyzw
 
@@ -79,6 +80,14 @@ def gt_pose(t: float) -> np.ndarray:
     rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
                     [0, 0, 1]])  # fmt: skip
     return np.concatenate([[1.0 + 0.2 * s, -0.1 * s, 0.5], matrix_to_quat_xyzw(rot)])
+
+
+def rigid_pose(rotvec_deg, translation) -> np.ndarray:
+    """A 4×4 pose from a rotation vector (degrees) and a translation."""
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
+    pose[:3, 3] = translation
+    return pose
 
 
 @pytest.fixture

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
+from conftest import rigid_pose
 
 from bgs_batch.slam.depth_timing import depth_motion, interval_motion, warp_depth
 from converters.synthetic import RoomRenderer, SynthConfig, camera_path
@@ -10,29 +10,22 @@ from converters.synthetic import RoomRenderer, SynthConfig, camera_path
 K = np.array([[100.0, 0.0, 31.5], [0.0, 100.0, 23.5], [0.0, 0.0, 1.0]])
 
 
-def _pose(rotvec_deg, translation) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
-    pose[:3, 3] = translation
-    return pose
-
-
 def test_interval_motion_scales_the_turn_and_the_shift_of_the_interval():
-    before = _pose([1.0, -2.0, 0.5], [0.3, 0.1, -0.2])
-    motion = _pose([0.0, 3.0, 0.0], [0.02, 0.0, -0.01])
+    before = rigid_pose([1.0, -2.0, 0.5], [0.3, 0.1, -0.2])
+    motion = rigid_pose([0.0, 3.0, 0.0], [0.02, 0.0, -0.01])
     after = before @ motion
     np.testing.assert_allclose(interval_motion(before, after, 1.0), motion, atol=1e-12)
     np.testing.assert_allclose(interval_motion(before, after, 0.0), np.eye(4), atol=1e-12)
     back = interval_motion(before, after, -0.5)
-    np.testing.assert_allclose(back, _pose([0.0, -1.5, 0.0], [-0.01, 0.0, 0.005]), atol=1e-12)
+    np.testing.assert_allclose(back, rigid_pose([0.0, -1.5, 0.0], [-0.01, 0.0, 0.005]), atol=1e-12)
 
 
 def test_depth_motion_is_none_when_there_is_nothing_to_move():
-    a, b = np.eye(4), _pose([0, 1, 0], [0.01, 0, 0])
+    a, b = np.eye(4), rigid_pose([0, 1, 0], [0.01, 0, 0])
     assert depth_motion(a, b, 1 / 30, 0.0) is None
     assert depth_motion(a, b, 0.0, 0.01) is None
     half = depth_motion(a, b, 1 / 30, 1 / 60)
-    np.testing.assert_allclose(half, _pose([0, 0.5, 0], [0.005, 0, 0]), atol=1e-12)
+    np.testing.assert_allclose(half, rigid_pose([0, 0.5, 0], [0.005, 0, 0]), atol=1e-12)
 
 
 def test_identity_warp_returns_the_image_and_keeps_holes():
@@ -45,7 +38,7 @@ def test_a_sideways_shift_moves_a_step_edge_by_the_closed_form_pixels():
     depth = np.full((48, 64), 2.0, np.float32)
     depth[:, 40:] = 1.0  # a nearer box on the right
     shift = 3 * 2.0 / K[0, 0]  # 3 px at 2 m, 6 px at 1 m
-    warped = warp_depth(depth, K, _pose([0, 0, 0], [shift, 0, 0]))
+    warped = warp_depth(depth, K, rigid_pose([0, 0, 0], [shift, 0, 0]))
     assert np.all(warped[:, 3:43] == 2.0) and np.all(warped[:, 46:] == 1.0)
     assert np.all(warped[:, :3] == 0) and np.all(warped[:, 43:46] == 0)  # nothing seen there
 
@@ -54,18 +47,18 @@ def test_the_nearer_surface_wins_where_two_land_on_one_pixel():
     depth = np.full((48, 64), 2.0, np.float32)
     depth[:, 30:34] = 1.0
     shift = 4 * 1.0 / K[0, 0]  # the near strip moves 4 px, the far wall 2 px
-    warped = warp_depth(depth, K, _pose([0, 0, 0], [shift, 0, 0]))
+    warped = warp_depth(depth, K, rigid_pose([0, 0, 0], [shift, 0, 0]))
     assert np.all(warped[:, 34:38] == 1.0)  # the strip covers the wall it moved over
     assert np.all(warped[:, 32:34] == 0)  # and uncovers wall nobody saw
 
 
-def test_a_warped_render_matches_the_render_at_the_other_pose():
+def test_a_warped_render_matches_the_render_at_the_otherrigid_pose():
     """Float64 oracle: the room seen from pose A, moved by 1.2° and 1 cm, equals the room
     rendered from pose B wherever both see a surface (up to rounding to the nearest pixel)."""
     config = SynthConfig(width=160, height=120, frames=10, seed=3)
     renderer = RoomRenderer(config)
     c2w_a = camera_path(config)(np.array([4.0]))[0]
-    c2w_b = c2w_a @ _pose([0.4, -1.0, 0.5], [0.01, -0.004, 0.006])
+    c2w_b = c2w_a @ rigid_pose([0.4, -1.0, 0.5], [0.01, -0.004, 0.006])
     _, z_a, valid_a = renderer._shade(c2w_a)
     _, z_b, valid_b = renderer._shade(c2w_b)
     depth_a = np.where(valid_a, z_a, 0).astype(np.float32)
@@ -88,7 +81,7 @@ def test_depth_motion_moves_the_depth_image_to_the_colour_time(offset):
     image and moved by `depth_motion` matches the depth at the colour image's time."""
     config = SynthConfig(width=160, height=120, frames=10, seed=3)
     renderer = RoomRenderer(config)
-    step = _pose([0.6, 1.8, -0.3], [0.004, 0.0, 0.006])  # per frame interval, 30 fps
+    step = rigid_pose([0.6, 1.8, -0.3], [0.004, 0.0, 0.006])  # per frame interval, 30 fps
     c2w = [camera_path(config)(np.array([4.0]))[0]]
     c2w += [c2w[0] @ step, c2w[0] @ step @ step]
     c2w_depth = c2w[2] @ interval_motion(np.eye(4), step, offset * 30)

@@ -1,22 +1,15 @@
 """A rolling-shutter frame moved to one instant (`bgs_batch.slam.rolling_shutter`)."""
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from conftest import rigid_pose
 
 from bgs_batch.slam.depth_timing import interval_motion
 from bgs_batch.slam.rolling_shutter import rectify, row_motions
 from converters.synthetic import RoomRenderer, SynthConfig, camera_path
 
 
-def _pose(rotvec_deg, translation) -> np.ndarray:
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_rotvec(np.radians(rotvec_deg)).as_matrix()
-    pose[:3, 3] = translation
-    return pose
-
-
 def test_row_motions_span_the_readout_about_its_middle():
-    motion = _pose([1.0, -2.0, 0.5], [0.01, 0.0, -0.02])
+    motion = rigid_pose([1.0, -2.0, 0.5], [0.01, 0.0, -0.02])
     rotations, shifts = row_motions(motion, 5)
     middle, first, last = 2, 0, 4
     assert np.allclose(rotations[middle], np.eye(3)) and np.allclose(shifts[middle], 0)
@@ -45,7 +38,7 @@ def test_a_rolling_shutter_render_rectified_matches_the_global_shutter_render():
     config = SynthConfig(width=160, height=120, frames=10, seed=3)
     renderer = RoomRenderer(config)
     middle = camera_path(config)(np.array([4.0]))[0]
-    readout = _pose([1.2, -2.0, 0.6], [0.008, -0.002, 0.005])
+    readout = rigid_pose([1.2, -2.0, 0.6], [0.008, -0.002, 0.005])
     rotations, shifts = row_motions(readout, config.height)
     rows = np.tile(np.eye(4), (config.height, 1, 1))
     rows[:, :3, :3], rows[:, :3, 3] = rotations, shifts
