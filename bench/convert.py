@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -43,7 +44,8 @@ from converters.tum import TUM_CAMERAS, TumOptions, plan_tum
 
 from status_page import recorded
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+BENCH_DIR = Path(__file__).resolve().parent
+SHARED_DATA = BENCH_DIR.parents[1] / "shared" / "data"
 DEFAULT_TUM = SHARED_DATA / "tum_rgbd" / "rgbd_dataset_freiburg1_rpy"
 TARGET_CONVERT_RATIO = 0.8
 TARGET_RSS_GROWTH_MB = 50
@@ -51,16 +53,17 @@ TARGET_READ_FPS = 150
 
 # Runs one conversion in a fresh interpreter and reports its own peak RSS.
 _CHILD = """
-import json, resource, sys, time
+import json, sys, time
 from pathlib import Path
 from converters.pipeline import write_store
 from converters.tum import TumOptions, plan_tum
+from peak_memory import peak_rss_mb
 folder, out, frames = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
 plan = plan_tum(folder, TumOptions(max_frames=frames))
 start = time.perf_counter()
 report = write_store(plan.frames, out, plan.meta, overwrite=True)
 print(json.dumps({"seconds": time.perf_counter() - start, "frames": report.frames,
-                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                  "peak_rss_mb": peak_rss_mb()}))
 """
 
 # Runs plan + conversion of a ScanNet scene or a bag in a fresh interpreter.
@@ -70,6 +73,7 @@ from pathlib import Path
 from converters.pipeline import write_store
 from converters.bag import BagOptions, plan_bag
 from converters.scannet import ScanNetOptions, plan_scannet
+from peak_memory import peak_rss_mb
 kind, source, out = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3])
 # timed from here, as the TUM child: the interpreter's imports are start-up, not throughput
 start, cpu = time.perf_counter(), time.process_time()
@@ -78,11 +82,8 @@ if kind == "scannet":
 else:
     plan = plan_bag(source, BagOptions())
 report = write_store(plan.frames, out, plan.meta, overwrite=True)
-# VmHWM, not ru_maxrss: the latter keeps the forking parent's peak across exec
-peak_kb = next(int(line.split()[1]) for line in open("/proc/self/status")
-               if line.startswith("VmHWM:"))
 print(json.dumps({"seconds": time.perf_counter() - start, "frames": report.frames,
-                  "cpu_s": time.process_time() - cpu, "peak_rss_mb": peak_kb / 1024}))
+                  "cpu_s": time.process_time() - cpu, "peak_rss_mb": peak_rss_mb()}))
 """
 SCANNET_COLOR_SIZE = (1296, 968)  # ScanNet's colour camera; depth stays 640x480
 BAG_STORAGES = {"ROS1 .bag (lz4)": ("ros1", "lz4"), "ROS2 .db3": ("sqlite3", None),
@@ -109,10 +110,17 @@ def decode_rate(pairs: list[tuple[Path, Path]], threads: int) -> float:
     return len(pairs) / (time.perf_counter() - start)
 
 
-def convert_in_child(folder: Path, out: Path, frames: int) -> dict:
-    result = subprocess.run([sys.executable, "-c", _CHILD, folder, out, str(frames)],
-                            check=True, capture_output=True, text=True)  # fmt: skip
+def run_child(code: str, *args: object) -> dict:
+    """Run `code` in a fresh interpreter that can import this folder's modules; its JSON line."""
+    path = os.pathsep.join(filter(None, [str(BENCH_DIR), os.environ.get("PYTHONPATH")]))
+    env = {**os.environ, "PYTHONPATH": path}
+    result = subprocess.run([sys.executable, "-c", code, *map(str, args)], check=True,
+                            capture_output=True, text=True, env=env)  # fmt: skip
     return json.loads(result.stdout)
+
+
+def convert_in_child(folder: Path, out: Path, frames: int) -> dict:
+    return run_child(_CHILD, folder, out, frames)
 
 
 def read_rates(path: Path) -> tuple[float, float]:
@@ -209,9 +217,7 @@ def format_decode(name: str, source: Path) -> tuple[float, float]:
 
 def format_convert_in_child(name: str, source: Path, out: Path) -> dict:
     kind = "scannet" if name.startswith("ScanNet") else "bag"
-    result = subprocess.run([sys.executable, "-c", _CHILD_FORMAT, kind, source, out],
-                            check=True, capture_output=True, text=True)  # fmt: skip
-    return json.loads(result.stdout)
+    return run_child(_CHILD_FORMAT, kind, source, out)
 
 
 def format_rows(

@@ -52,6 +52,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from baseline import open3d_dense_slam
+from peak_memory import peak_rss_mb
 from scipy.stats import spearmanr
 
 from bgs_batch.config import ConfigError, load_config
@@ -237,7 +238,7 @@ def _run(store: Path, job: Path, overrides: list[str]) -> ChildRun:
     summary = run_job(store, job, load_config("cpu", overrides))
     after = resource.getrusage(resource.RUSAGE_SELF)
     cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
-    return ChildRun(summary, cpu, after.ru_maxrss / 1024)
+    return ChildRun(summary, cpu, peak_rss_mb())
 
 
 def print_table(results: list[SequenceResult], seeds: range) -> None:
