@@ -15,26 +15,26 @@ over seeds, not only on the dev excerpt it was tried on. The sequences:
   motion blur, a rolling shutter and large depth holes.
 
 Every sequence is converted with the defaults (what a user gets) and run with the `cpu` preset at
-seeds 0..N-1 (plus the ``--set`` overrides), and once with Open3D's frame-to-model TSDF SLAM in a
-child process (`baseline.py`). Per sequence it prints: the ATE of each seed and their mean, the
-ratio of the mean to Open3D's ATE, the frame-to-frame error (RPE over one frame, translation, mean
-over seeds), the estimated path length of seed 0 beside the true one and Open3D's, CPU seconds per
-frame of bgs (all threads) and of Open3D, bgs's frames per second, its tracking seconds per frame,
-median tracking iterations, and the share of frames whose start the warm start moved (registration
-trusted), and the peak resident memory of a run's process (the largest over seeds). Each run has a
-process of its own, as a user's `bgs run` does, so its ATE is the CLI's to the last digit (a job's
-float rounding depends on what ran before it in a process). A second table ranks the uncertainty:
-per sequence the depth AUSE-MAE (raw, m; `bgs eval`'s metrics on the keyframes, mean over seeds)
-of the full predictive variance Σ_D and of its map and sensor parts and a VarSplat-style variance,
-the colour AUSE, and at how many seeds the full variance ranks the depth errors best of the four,
-and, on the synthetic sequences, whose true per-pixel noise σ `bgs synth` writes, the Spearman
-correlation of the predicted sensor depth σ with it (`sigma_rank`). The SUMMARY line gives the
-mean ratio to Open3D over the real validation pieces and over the synthetic sequences, the dev
-ratio, the slowest fps, the highest peak memory, the sequences where the full variance was not the
-best at every seed, and the lowest Spearman correlation. ATEs are deterministic for a given seed;
-times depend on the machine's load. The numba kernels are compiled into their cache by
-`bgs_batch.warmup` before anything is timed; a run's process loads them from there, as `bgs run`
-does.
+seeds K..K+N-1 (``--first-seed K``, ``--seeds N``; 0..2 by default) plus the ``--set`` overrides,
+and once with Open3D's frame-to-model TSDF SLAM in a child process (`baseline.py`). Per sequence it
+prints: the ATE of each seed and their mean, the ratio of the mean to Open3D's ATE, the
+frame-to-frame error (RPE over one frame, translation, mean over seeds), the estimated path length
+of the first seed beside the true one and Open3D's, CPU seconds per frame of bgs (all threads) and
+of Open3D, bgs's frames per second, its tracking seconds per frame, median tracking iterations, and
+the share of frames whose start the warm start moved (registration trusted), and the peak resident
+memory of a run's process (the largest over seeds). Each run has a process of its own, as a user's
+`bgs run` does, so its ATE is the CLI's to the last digit (a job's float rounding depends on what
+ran before it in a process). A second table ranks the uncertainty: per sequence the depth AUSE-MAE
+(raw, m; `bgs eval`'s metrics on the keyframes, mean over seeds) of the full predictive variance
+Σ_D and of its map and sensor parts and a VarSplat-style variance, the colour AUSE, and at how many
+seeds the full variance ranks the depth errors best of the four, and, on the synthetic sequences,
+whose true per-pixel noise σ `bgs synth` writes, the Spearman correlation of the predicted sensor
+depth σ with it (`sigma_rank`). The SUMMARY line gives the mean ratio to Open3D over the real
+validation pieces and over the synthetic sequences, the dev ratio, the slowest fps, the highest
+peak memory, the sequences where the full variance was not the best at every seed, and the lowest
+Spearman correlation. ATEs are deterministic for a given seed; times depend on the machine's load.
+The numba kernels are compiled into their cache by `bgs_batch.warmup` before anything is timed; a
+run's process loads them from there, as `bgs run` does.
 """
 
 from __future__ import annotations
@@ -316,6 +316,8 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, metavar="DIR",
                         help="keep the stores and jobs in DIR, a new folder")  # fmt: skip
     args = parser.parse_args()
+    if args.seeds < 1 or args.first_seed < 0:
+        sys.exit("bench/validate.py: --seeds must be at least 1 and --first-seed at least 0")
     if args.keep and args.keep.exists() and any(args.keep.iterdir()):
         sys.exit(f"bench/validate.py: {args.keep} is not empty (--keep needs a new folder)")
     try:  # a bad override fails now, not after the first runs
