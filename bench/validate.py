@@ -29,10 +29,15 @@ ran before it in a process). A second table ranks the uncertainty: per sequence 
 Σ_D and of its map and sensor parts and a VarSplat-style variance, the colour AUSE, and at how many
 seeds the full variance ranks the depth errors best of the four, and, on the synthetic sequences,
 whose true per-pixel noise σ `bgs synth` writes, the Spearman correlation of the predicted sensor
-depth σ with it (`sigma_rank`). The SUMMARY line gives the mean ratio to Open3D over the real
+depth σ with it (`sigma_rank`). A third table scores the map a user takes away: ``global.ply``
+rendered at ``trajectory.txt``'s poses at input resolution on the frames the global stage held
+out and on the keyframes, beside the submaps' keyframe PSNR, with the stage's seconds and its
+share of the run. The SUMMARY line gives the mean ratio to Open3D over the real
 validation pieces and over the synthetic sequences, the dev ratio, the slowest fps, the highest
-peak memory, the sequences where the full variance was not the best at every seed, and the lowest
-Spearman correlation. ATEs are deterministic for a given seed; times depend on the machine's load.
+peak memory, the sequences where the full variance was not the best at every seed, the smallest
+margin of the global map's held-out PSNR over the submaps' keyframe PSNR, the largest share of a
+run the global stage took, and the lowest Spearman correlation. ATEs are deterministic for a
+given seed; times depend on the machine's load.
 The numba kernels are compiled into their cache by `bgs_batch.warmup` before anything is timed; a
 run's process loads them from there, as `bgs run` does.
 """
@@ -111,6 +116,7 @@ class SequenceResult:
     ause_depth: list[dict[str, float]] = field(default_factory=list)  # per seed, per variance
     ause_color: list[float] = field(default_factory=list)
     sigma_rho: list[float] = field(default_factory=list)  # synthetic: per seed, see sigma_rank
+    rendering: list[dict[str, float]] = field(default_factory=list)  # per seed, `rendering_scores`
 
     @property
     def ratio(self) -> float:
@@ -171,9 +177,11 @@ def run_sequence(name: str, store: Path, root: Path, seeds: range, overrides: li
         )
         starts = [e["track_start"]["start"] for e in events if "track_start" in e]
         result.registered.append(starts.count("registration") / max(1, n - 1))
-        depth, colour = uncertainty_ranking(job, store)
+        metrics = evaluate(job, store)
+        depth, colour = uncertainty_ranking(metrics)
         result.ause_depth.append(depth)
         result.ause_color.append(colour)
+        result.rendering.append(rendering_scores(metrics, summary))
         if name in SYNTHETIC:
             result.sigma_rho.append(sigma_rank(job, store, root / name))
         print(f"  {name} seed {seed}: ATE {summary.ate_rmse_m * 100:.2f} cm, "
@@ -181,16 +189,32 @@ def run_sequence(name: str, store: Path, root: Path, seeds: range, overrides: li
     return result
 
 
-def uncertainty_ranking(job: Path, store: Path) -> tuple[dict[str, float], float]:
-    """Depth AUSE-MAE per variance and colour AUSE-MAE (raw) of a finished job, as `bgs eval`
-    computes them (metrics only, at the run's mapping resolution)."""
+def evaluate(job: Path, store: Path) -> dict:
+    """``metrics.json`` of a finished job as `bgs eval --no-report` writes it."""
     only_metrics = ExportOptions(ply=False, trajectory=False, uncertainty=False, renders=False,
                                  report=False, store=store)  # fmt: skip
     export_job(job, only_metrics)
-    ranking = json.loads((job / "outputs" / METRICS_FILE).read_text())["uncertainty"]
+    return json.loads((job / "outputs" / METRICS_FILE).read_text())
+
+
+def uncertainty_ranking(metrics: dict) -> tuple[dict[str, float], float]:
+    """Depth AUSE-MAE per variance and colour AUSE-MAE (raw), at the run's mapping resolution."""
+    ranking = metrics["uncertainty"]
     depth = {name: ranking["ause_mae_depth_by_variance"][name]["ause_raw"]
              for name in DEPTH_VARIANCES}  # fmt: skip
     return depth, ranking["ause_mae_color"]["ause_raw"]
+
+
+def rendering_scores(metrics: dict, summary: RunSummary) -> dict[str, float]:
+    """The global map's PSNR and SSIM on its held-out frames and PSNR on the keyframes (input
+    resolution, at trajectory.txt's poses), the submaps' keyframe PSNR (`bgs eval`'s
+    per-submap block, mapping resolution), and the global stage's seconds and share of the run."""
+    held, keys = (metrics["global_map"][part]["rendering"] for part in ("held_out", "keyframes"))
+    stage = summary.stage_seconds["global_map"]
+    return {"held_out_frames": held["frames"], "held_out_psnr": held["psnr_db"],
+            "held_out_ssim": held["ssim"], "global_keyframe_psnr": keys["psnr_db"],
+            "submap_keyframe_psnr": metrics["rendering"]["psnr_db"], "stage_s": stage,
+            "stage_share": stage / summary.seconds}  # fmt: skip
 
 
 def sigma_rank(job: Path, store: Path, sequence: Path) -> float:
@@ -277,6 +301,36 @@ def print_table(results: list[SequenceResult], seeds: range) -> None:
               f"{f'{r.full_variance_best}/{len(r.ause_depth)}':>7}{rho:>8}")  # fmt: skip
 
 
+RENDERING_COLUMNS = (  # key, header, format
+    ("held_out_frames", "held", ">6.0f"), ("held_out_psnr", "PSNR", ">8.2f"),
+    ("held_out_ssim", "SSIM", ">7.3f"), ("global_keyframe_psnr", "kf PSNR", ">9.2f"),
+    ("submap_keyframe_psnr", "submap kf", ">11.2f"), ("stage_s", "stage s", ">9.1f"),
+    ("stage_share", "share", ">7.0%"),
+)  # fmt: skip
+
+
+def print_rendering_table(results: list[SequenceResult]) -> None:
+    print()
+    print("Global map (outputs/ply/global.ply) rendered at trajectory.txt's poses at input "
+          "resolution, mean over seeds: on its held-out frames (never trained on) and on the "
+          "keyframes; submap kf = each keyframe from its own submap at mapping resolution (the "
+          "per-submap block of `bgs eval`); the global stage's seconds and share of the run. "
+          "The stage does not move the poses: the ATE above is the ATE before and after it.")
+    header = f"{'sequence':<9}" + "".join(f"{h:>{f[1:].split('.')[0]}}"
+                                        for _, h, f in RENDERING_COLUMNS)  # fmt: skip
+    print(header)
+    print("-" * len(header))
+    for r in results:
+        cells = "".join(format(_mean_of(r.rendering, key), fmt)
+                        for key, _, fmt in RENDERING_COLUMNS)  # fmt: skip
+        print(f"{r.name:<9}{cells}")
+
+
+def _mean_of(rows: list[dict[str, float]], key: str) -> float:
+    values = [row[key] for row in rows if row[key] is not None]
+    return statistics.mean(values) if values else float("nan")
+
+
 def summary_line(results: list[SequenceResult]) -> str:
     by_name = {r.name: r for r in results}
     parts = []
@@ -296,6 +350,14 @@ def summary_line(results: list[SequenceResult]) -> str:
     behind = [r.name for r in results if r.full_variance_best < len(r.ause_depth)]
     parts.append("full Σ_D ranks depth best at every seed " + (
         "on every sequence" if not behind else f"except on {', '.join(behind)}"))  # fmt: skip
+    margins = {r.name: _mean_of(r.rendering, "held_out_psnr")
+               - _mean_of(r.rendering, "submap_keyframe_psnr") for r in results}  # fmt: skip
+    worst = min(margins, key=margins.get)
+    parts.append(f"global map held-out PSNR − submap keyframe PSNR ≥ {margins[worst]:+.2f} dB "
+                 f"({worst})")  # fmt: skip
+    costliest = max(results, key=lambda r: _mean_of(r.rendering, "stage_share"))
+    parts.append(f"global stage ≤ {_mean_of(costliest.rendering, 'stage_share'):.0%} of a run "
+                 f"({costliest.name})")  # fmt: skip
     rhos = {r.name: min(r.sigma_rho) for r in results if r.sigma_rho}
     if rhos:
         worst = min(rhos, key=rhos.get)
@@ -339,6 +401,7 @@ def main() -> None:
                    for name, store in stores.items()]  # fmt: skip
     print()
     print_table(results, seeds)
+    print_rendering_table(results)
     print(summary_line(results))
 
 

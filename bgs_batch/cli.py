@@ -393,13 +393,22 @@ def _print_export(report, brief_in: Path | None = None) -> None:  # noqa: ANN001
     metrics = report.metrics
     if metrics:
         r, u = metrics["rendering"], metrics["uncertainty"]
-        line = f"keyframes: PSNR {r['psnr_db']:.2f} dB, SSIM {r['ssim']:.3f}"
+        line = f"submaps at keyframes: PSNR {r['psnr_db']:.2f} dB, SSIM {r['ssim']:.3f}"
         if r["depth_l1_cm"] is not None:
             line += f", depth L1 {r['depth_l1_cm']:.2f} cm"
         if u is not None:
             line += (f", AUSE-MAE colour {u['ause_mae_color']['ause_raw']:.4f}, depth "
                      f"{u['ause_mae_depth']['ause_raw']:.4f} m (raw)")  # fmt: skip
         click.echo(line)
+        g = metrics["global_map"]
+        parts = []
+        for name, label in (("held_out", "held-out frames"), ("keyframes", "keyframes")):
+            r = g[name]["rendering"]
+            if r["frames"]:
+                parts.append(f"{label} PSNR {r['psnr_db']:.2f} dB, SSIM {r['ssim']:.3f}")
+        if parts:
+            click.echo(f"global map ({g['gaussians']} Gaussians, input resolution): "
+                       + "; ".join(parts))  # fmt: skip
 
 
 def _run_export(ctx: click.Context, job: Path, options, brief: bool = False) -> None:  # noqa: ANN001
@@ -409,8 +418,7 @@ def _run_export(ctx: click.Context, job: Path, options, brief: bool = False) -> 
 
     count = 0
     if options.uncertainty or options.renders or options.report:
-        images, metrics = frames_to_render(FinishedJob(job, options.store), options)
-        count = len(set(images) | set(metrics))
+        count = frames_to_render(FinishedJob(job, options.store), options).count
     with progress_bar("rendering", count, _show_progress(ctx) and count > 0) as advance:
         report = export_job(job, options, progress=advance)
     _print_export(report, job / "outputs" if brief else None)

@@ -290,6 +290,28 @@ class SmoothingConfig:
 
 
 @dataclass
+class GlobalMapConfig:
+    """The end-of-run global map (docs/method.md §8c; `bgs_batch.slam.global_map`): the
+    corrected submaps merged where each owns the surface, then optimised at the reported poses
+    on every frame but the held-out ones, by the mapping loss (Eq. 12-14)."""
+
+    # over the training frames, in a seeded random order, one Adam step per visit (0: the
+    # merged map as it is); the reference systems train their merged map 10k-30k iterations
+    passes: float = 2.0
+    # every N-th frame that is not a keyframe is held out of the stage and scored by `bgs eval`
+    # on views the map never trained on (0: none held out)
+    hold_out_every: int = 8
+    downscale: int = 1  # render at input resolution / this (1: full resolution)
+    # merge: a Gaussian lies on another submap's surface where that submap's rendered depth is
+    # within this share of the Gaussian's own depth, and covers it where its alpha reaches ...
+    merge_depth_tolerance: float = 0.05
+    merge_min_alpha: float = 0.9
+    # at the end, Gaussians below this opacity go (Gaussian-SLAM's global refinement value)
+    pruning_threshold: float = 0.005
+    checkpoint_every: int = 100  # visits between the job's checkpoints (and on a stop signal)
+
+
+@dataclass
 class Config:
     """A whole SLAM run."""
 
@@ -325,6 +347,7 @@ class Config:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
+    global_map: GlobalMapConfig = field(default_factory=GlobalMapConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -483,6 +506,13 @@ RANGES: dict[str, Range] = {
     "smoothing.log_ratio_min": ANY,
     "smoothing.log_ratio_max": ANY,  # and above the minimum (`check`)
     "smoothing.log_ratio_step": POSITIVE,
+    "global_map.passes": Range(0, 1000),
+    "global_map.hold_out_every": NON_NEGATIVE,
+    "global_map.downscale": COUNT,
+    "global_map.merge_depth_tolerance": POSITIVE,
+    "global_map.merge_min_alpha": SHARE,
+    "global_map.pruning_threshold": SHARE,
+    "global_map.checkpoint_every": COUNT,
 }
 
 

@@ -102,8 +102,8 @@ def run_demo(config: DemoConfig, *, show_progress: bool = True, console: Console
 
     console.rule("[bold]5/5 export maps, uncertainty images, metrics and the report")
     options = RUN_DEFAULTS
-    images, metrics = frames_to_render(FinishedJob(job_dir), options)
-    with progress_bar("rendering", len(set(images) | set(metrics)), show_progress) as advance:
+    count = frames_to_render(FinishedJob(job_dir), options).count
+    with progress_bar("rendering", count, show_progress) as advance:
         exported = export_job(job_dir, options, progress=advance)
     console.print(result_table(run, exported.metrics, job_dir / OUTPUT_DIR))
     console.print(

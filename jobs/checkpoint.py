@@ -1,6 +1,7 @@
 """Checkpoints of a running job: atomic, checksummed, the newest two kept (docs/usage.md).
 
-A checkpoint is one file ``checkpoints/<frames done>-<sha256 prefix>.pt`` written with
+A checkpoint is one file ``checkpoints/<frames done>-<end-of-run steps>-<sha256 prefix>.pt``
+(the steps are 0 while frames are processed, then 1 + the global stage's visits done) written with
 `bgs_batch.atomic`, so a crash never leaves a half-written file under a final name, and a file
 damaged later (truncated copy, full disk) fails its checksum and is skipped in favour of the
 previous one. Contents are tensors and plain values: ``torch.load(weights_only=True)``.
@@ -25,15 +26,17 @@ DIGEST_CHARS = 16
 log = logging.getLogger(__name__)
 
 
-def write_checkpoint(job_dir: Path, frames_done: int, state: dict[str, Any]) -> Path:
-    """Write the state after `frames_done` frames; keep only the newest `KEEP` checkpoints."""
+def write_checkpoint(job_dir: Path, frames_done: int, state: dict[str, Any],
+                     end_steps: int = 0) -> Path:  # fmt: skip
+    """Write the state after `frames_done` frames and `end_steps` steps of the run's end (see
+    the module docstring); keep only the newest `KEEP` checkpoints."""
     folder = job_dir / CHECKPOINT_DIR
     folder.mkdir(exist_ok=True)
     buffer = io.BytesIO()
     torch.save({"frames_done": frames_done, "state": state}, buffer)
     data = buffer.getvalue()
     digest = hashlib.sha256(data).hexdigest()[:DIGEST_CHARS]
-    path = folder / f"{frames_done:08d}-{digest}.pt"
+    path = folder / f"{frames_done:08d}-{end_steps:08d}-{digest}.pt"
     atomic.write_bytes(path, data)  # e.g. disk full: the previous checkpoints stay intact
     for old in sorted(folder.glob("*.pt"))[:-KEEP]:
         old.unlink()

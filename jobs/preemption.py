@@ -21,9 +21,10 @@ class Preempted(BgsError):
 
     exit_code = PREEMPTED_EXIT
 
-    def __init__(self, signum: int, frames_done: int, job_dir: Path) -> None:
+    def __init__(self, signum: int, progress: str, job_dir: Path) -> None:
+        """`progress` says where it stopped: "after 12 frames", "in the global stage …"."""
         super().__init__(
-            f"stopped by {signal.Signals(signum).name} after {frames_done} frames; checkpoint "
+            f"stopped by {signal.Signals(signum).name} {progress}; checkpoint "
             f"written: `bgs run … --job-dir {job_dir}` continues where it stopped"
         )
 

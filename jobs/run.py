@@ -10,6 +10,8 @@ Job directory::
                      (``TIMING_FIELDS``: seconds since the job started, and per stage)
     trajectory.txt   estimated camera-to-world poses, TUM format
     submaps/         frozen submaps (Gaussian parameters + keyframe ids), one file each
+    global_map.pt    the global map (`bgs_batch.slam.global_map`): Gaussian parameters, the
+                     training and held-out frames, the visits each frame had
     sensor_net.pt    the trained sensor-noise network (state dict)
     summary.json     frames, keyframes, mapping calls, fps, time per stage, ATE when GT exists
     error.json       the exception that stopped the last run, if any
@@ -35,10 +37,11 @@ from bgs_batch.atomic import atomic_file, remove_temporaries, save_torch, write_
 from bgs_batch.config import Config, check_crop, for_store
 from bgs_batch.metrics import ate
 from bgs_batch.slam import Slam
+from bgs_batch.slam.global_map import GlobalMapStage
 from bgs_batch.store import FrameStore
 from jobs.checkpoint import CHECKPOINT_DIR, load_latest, write_checkpoint
 from jobs.jobdir import check_or_write_record, job_lock, job_record, read_record, set_aside
-from jobs.preemption import Preempted, stop_requests
+from jobs.preemption import Preempted, StopRequest, stop_requests
 from outputs.trajectory import write_tum
 
 
@@ -54,12 +57,15 @@ class RunSummary:
     ate_rmse_m: float | None
     # the smoother's maximum-likelihood noise of the tracked trajectory (`smoothing.enabled`)
     trajectory_smoothing: dict[str, float] | None = None
+    global_map: dict[str, int] | None = None  # `GlobalMapStage.summary`
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
 ERROR_FILE = "error.json"
+SENSOR_FILE = "sensor_net.pt"
+GLOBAL_MAP_FILE = "global_map.pt"
 SUMMARY_FILE = "summary.json"
 LOG_FILE = "log.jsonl"
 SUBMAP_DIR = "submaps"
@@ -133,8 +139,13 @@ def _run(
     with stop_requests() as stop:
         n = len(store) if max_frames is None else min(max_frames, len(store))
         slam = Slam(cfg, store.intrinsics, job_dir / SUBMAP_DIR)
-        done, previous_seconds = _resume(slam, store, job_dir)
+        done, previous_seconds, stage_state = _resume(slam, store, job_dir)
         start = time.perf_counter() - previous_seconds
+
+        def checkpoint(frames: int, stage: GlobalMapStage | None = None) -> None:
+            state = _job_state(slam, time.perf_counter() - start, stage)
+            write_checkpoint(job_dir, frames, state, 0 if stage is None else 1 + stage.visits)
+
         with open(job_dir / LOG_FILE, "a", buffering=1) as log:  # line-buffered: status reads it
             for frame in store.frames(range(done, n)):
                 event = slam.process(frame)
@@ -145,13 +156,20 @@ def _run(
                 done = frame.index + 1
                 if done % cfg.checkpoint_every == 0 or stop.requested:
                     log.flush()
-                    write_checkpoint(job_dir, done, _job_state(slam, time.perf_counter() - start))
+                    checkpoint(done)
                 if stop.requested and done < n:
-                    raise Preempted(stop.requested, done, job_dir)
-        slam.finish(store.__getitem__)
-        save_torch(slam.sensor.state_dict(), job_dir / "sensor_net.pt")
-        timestamps = store.timestamps[:n]
+                    raise Preempted(stop.requested, f"after {done} frames", job_dir)
+        if stage_state is None:  # the end of the run: refinement, then the global stage's merge
+            slam.finish(store.__getitem__)
         poses, smoothing = slam.trajectory()
+        if stage_state is None:
+            stage = slam.global_stage(poses, store.__getitem__)
+            checkpoint(n, stage)  # a resumed job starts here, not with `finish` again
+        else:
+            stage = GlobalMapStage.from_state_dict(cfg, stage_state, slam.sensor)
+        _optimise_global_map(slam, stage, store, stop, lambda: checkpoint(n, stage), job_dir)
+        save_sensor_and_map(job_dir, slam, stage)
+        timestamps = store.timestamps[:n]
         gt = store.poses_gt[:n] if store.has_gt else None
     with atomic_file(job_dir / "trajectory.txt") as tmp:
         write_tum(tmp, timestamps, poses)
@@ -167,27 +185,56 @@ def _run(
         stage_seconds=asdict(slam.timings),
         ate_rmse_m=ate_rmse,
         trajectory_smoothing=smoothing.as_dict() if smoothing else None,
+        global_map=stage.summary(),
     )
     write_text(job_dir / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2))
     return summary
 
 
-def _job_state(slam: Slam, seconds: float) -> dict[str, Any]:
-    return {"slam": slam.state_dict(), "seconds": seconds}
+def _optimise_global_map(slam: Slam, stage: GlobalMapStage, store: FrameStore,
+                         stop: StopRequest, checkpoint: Callable[[], None], job_dir: Path
+                         ) -> None:  # fmt: skip
+    """The global stage's visits, checkpointed every ``global_map.checkpoint_every`` and on a
+    stop signal (then `Preempted`)."""
+    every, total = slam.cfg.global_map.checkpoint_every, len(stage.order)
+    with slam.timings.measure("global_map"):
+        for visits in stage.run(lambda i: slam.prepare_index(i, store.__getitem__)):
+            if visits % every == 0 or stop.requested:
+                checkpoint()
+            if stop.requested and visits < total:
+                raise Preempted(stop.requested, f"in the global stage after {visits} of "
+                                f"{total} visits", job_dir)  # fmt: skip
 
 
-def _resume(slam: Slam, store: FrameStore, job_dir: Path) -> tuple[int, float]:
+def save_sensor_and_map(job_dir: Path, slam: Slam, stage: GlobalMapStage) -> None:
+    """The trained sensor network and the global map with the stage's record."""
+    save_torch(slam.sensor.state_dict(), job_dir / SENSOR_FILE)
+    save_torch({"params": stage.params(), **stage.record()}, job_dir / GLOBAL_MAP_FILE)
+
+
+def _job_state(slam: Slam, seconds: float, stage: GlobalMapStage | None = None
+               ) -> dict[str, Any]:  # fmt: skip
+    state = {"slam": slam.state_dict(), "seconds": seconds}
+    if stage is not None:  # every frame done and the run's end reached
+        state["global_map"] = stage.state_dict()
+    return state
+
+
+def _resume(slam: Slam, store: FrameStore, job_dir: Path
+            ) -> tuple[int, float, dict[str, Any] | None]:  # fmt: skip
     """Restore the newest valid checkpoint (if any) and cut the log back to it.
 
-    Returns (frames done, seconds already spent). Without a checkpoint the log starts empty.
+    Returns (frames done, seconds already spent, the global stage's state when the checkpoint
+    was taken in it). Without a checkpoint the log starts empty.
     """
     latest = load_latest(job_dir)
-    done, seconds = 0, 0.0
+    done, seconds, stage = 0, 0.0, None
     if latest is not None:
         done, state = latest
         slam.load_state_dict(state["slam"], store.__getitem__)
         seconds = float(state["seconds"])
+        stage = state.get("global_map")
     log_path = job_dir / LOG_FILE
     lines = log_path.read_text().splitlines(keepends=True)[:done] if log_path.exists() else []
     write_text(log_path, "".join(lines))
-    return done, seconds
+    return done, seconds, stage

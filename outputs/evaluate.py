@@ -38,12 +38,22 @@ CONVENTIONS = {
     "estimate and ground truth (matched by timestamp). 'rigid': Horn/Umeyama alignment of the "
     "estimate to GT with rotation and translation, no scale (as `evo_ape tum gt.tum "
     "estimate.tum -a`); 'with_scale': Sim(3) alignment (`-as`). RMSE, mean, median, max in cm.",
-    "frames": "Rendering and uncertainty metrics use the keyframes (frames the SLAM mapped), "
-    "each rendered from its own submap (as saved at the end of the run) at its final estimated "
-    "pose (trajectory.txt).",
-    "resolution": "Images are rendered and compared at input resolution / downscale after the "
-    "run's border crop; the measured frame is block-averaged to that resolution as the SLAM "
-    "does (colour mean, depth mean of valid readings).",
+    "frames": "'rendering' and 'uncertainty' use the keyframes (frames the SLAM mapped), each "
+    "rendered from its own submap (as saved at the end of the run) at the pose that submap was "
+    "fitted at: the frame's tracked pose moved by its submap's loop-closure correction (the "
+    "trajectory.txt pose may differ: it spreads the corrections along the frames and is "
+    "smoothed).",
+    "resolution": "'rendering' and 'uncertainty': images are rendered and compared at input "
+    "resolution / downscale after the run's border crop; the measured frame is block-averaged "
+    "to that resolution as the SLAM does (colour mean, depth mean of valid readings).",
+    "global_map": "The global map (outputs/ply/global.ply, from global_map.pt) rendered at the "
+    "poses of trajectory.txt at input resolution after the run's border crop, against the "
+    "measured frames prepared as the run prepared them (rolling-shutter rows and depth moved "
+    "to the frame's instant where the run did): 'held_out' are the frames the global stage "
+    "held back from every optimisation (every global_map.hold_out_every-th frame that is not a "
+    "keyframe; no keyframe is ever held out), 'keyframes' the frames the SLAM mapped (the "
+    "stage trained on them). Metrics as for 'rendering'; Σ from the global map's refitted "
+    "opacity variances and the run's sensor network.",
     "psnr": "10 log10(1/MSE) over all pixels and channels, colour in [0,1], rendered colour "
     "clamped to [0,1]; mean over frames (dB).",
     "ssim": "3DGS Gaussian-window SSIM (11x11, sigma 1.5); mean over frames.",
@@ -176,6 +186,31 @@ class FrameEvaluator:
         }
 
 
+@dataclass
+class GlobalMapEvaluation:
+    """The global map's metrics on its held-out frames and on the keyframes (`CONVENTIONS`)."""
+
+    held_out: FrameEvaluator
+    keyframes: FrameEvaluator
+    size: tuple[int, int] | None = None  # width, height of the images
+
+    def as_dict(self, job: FinishedJob) -> dict[str, Any]:
+        record = job.global_map
+        return {
+            "map": "outputs/ply/global.ply",
+            "poses": "trajectory.txt",
+            "resolution": {"downscale": 1, "width": None if self.size is None else self.size[0],
+                           "height": None if self.size is None else self.size[1]},
+            "gaussians": int(record.params["means"].shape[0]),
+            "training_frames": len(record.training_frames),
+            "held_out_frames": record.held_out_frames,
+            "held_out": {"rendering": self.held_out.rendering(),
+                         "uncertainty": self.held_out.uncertainty()},
+            "keyframes": {"rendering": self.keyframes.rendering(),
+                          "uncertainty": self.keyframes.uncertainty()},
+        }  # fmt: skip
+
+
 @dataclass(frozen=True)
 class TrajectoryEvaluation:
     """The estimate and, with ground truth, its alignment and per-frame errors."""
@@ -249,6 +284,7 @@ def build_metrics(
     frames: FrameEvaluator,
     downscale: int,
     image_size: tuple[int, int] | None,
+    global_map: GlobalMapEvaluation,
 ) -> dict[str, Any]:
     """The content of ``metrics.json`` (non-finite numbers, e.g. the scale of a degenerate
     trajectory, become null)."""
@@ -268,6 +304,7 @@ def build_metrics(
             "ate": _ate_section(trajectory),
             "rendering": frames.rendering(),
             "uncertainty": frames.uncertainty(),
+            "global_map": global_map.as_dict(job),
             "run": run_statistics(job),
             "uncertainty_config": {
                 "map_floor": cfg.uncertainty.map_floor,

@@ -3,7 +3,8 @@
 Written into ``JOB/outputs/``::
 
     ply/submap_XXXXXX.ply   one PLY per submap (INRIA 3DGS layout, see `outputs.ply`)
-    ply/global.ply          all submaps merged, near-duplicates thinned
+    ply/global.ply          the global map: the submaps merged and optimised on the run's
+                            frames at the reported poses (`bgs_batch.slam.global_map`)
     trajectory/             estimate.{tum,kitti}, times.txt; with the frame store's ground truth
                             also estimate_aligned.{tum,kitti} and gt.{tum,kitti}
     uncertainty.h5          per-frame renders, variances, residuals (`outputs.uncertainty_h5`)
@@ -34,6 +35,7 @@ import numpy as np
 from bgs_batch.atomic import atomic_dir, atomic_file, remove_temporaries
 from bgs_batch.errors import InputError
 from bgs_batch.signals import interruptible
+from bgs_batch.store import FrameStore
 from jobs.jobdir import job_lock
 from jobs.preemption import STOP_SIGNALS
 from outputs import plots
@@ -41,6 +43,7 @@ from outputs.colormap import write_png
 from outputs.evaluate import (
     MIN_ALIGNED_FRAMES,
     FrameEvaluator,
+    GlobalMapEvaluation,
     TrajectoryEvaluation,
     build_metrics,
     evaluate_trajectory,
@@ -48,7 +51,7 @@ from outputs.evaluate import (
 )
 from outputs.jobfiles import FinishedJob, incomplete
 from outputs.lpips import Lpips, load_lpips
-from outputs.ply import Splats, merge_submaps, write_ply
+from outputs.ply import Splats, write_ply
 from outputs.report import write_report
 from outputs.trajectory import write_trajectories
 from outputs.uncertainty import FrameUncertainty, UncertaintyRenderer, select_frames
@@ -59,7 +62,8 @@ UNCERTAINTY_FILE = "uncertainty.h5"
 METRICS_FILE = "metrics.json"
 REPORT_FILE = "report.html"
 REPORT_DIR = "report"
-GALLERY_FRAMES = 4  # keyframes shown in the report, evenly spaced
+GALLERY_FRAMES = 4  # keyframes (and held-out frames) shown in the report, evenly spaced
+GLOBAL_PLY = "global.ply"
 
 
 @dataclass(frozen=True)
@@ -111,14 +115,15 @@ class ExportReport:
 
 
 def export_ply(job: FinishedJob, report: ExportReport) -> None:
-    """One PLY per submap and the merged global map, into ``outputs/ply``."""
+    """One PLY per submap and the global map of the run's global stage, into ``outputs/ply``."""
     submaps = [Splats.from_params(job.submap_params(p)) for p in job.submap_paths()]
     named = [(f"submap_{i:06d}.ply", s) for i, s in enumerate(submaps)]
+    global_map = Splats.from_params(job.global_map.params)
     with atomic_dir(job.outputs / "ply") as tmp:
-        for name, splats in [*named, ("global.ply", merge_submaps(submaps))]:
+        for name, splats in [*named, (GLOBAL_PLY, global_map)]:
             report.gaussians[name] = write_ply(tmp / name, splats)
     report.files.extend(job.outputs / "ply" / name for name, _ in named)
-    report.files.append(job.outputs / "ply" / "global.ply")
+    report.files.append(job.outputs / "ply" / GLOBAL_PLY)
 
 
 def export_trajectories(job: FinishedJob, report: ExportReport) -> None:
@@ -189,6 +194,8 @@ def _check_inputs(job: FinishedJob, options: ExportOptions) -> None:
     """Load (and so validate) the job's files the requested outputs need, before writing."""
     if options.ply:
         job.submap_paths()
+    if options.ply or options.metrics:
+        _ = job.global_map
     if options.trajectory or options.metrics:
         job.trajectory()
     if options.uncertainty or options.renders or options.metrics:
@@ -236,13 +243,30 @@ def export_job(job_dir: Path, options: ExportOptions = ExportOptions(),
     return report
 
 
-def frames_to_render(job: FinishedJob, options: ExportOptions) -> tuple[list[int], list[int]]:
-    """(frames of the images, frames of the metrics)."""
+@dataclass(frozen=True)
+class RenderPlan:
+    """The frames an export renders: of the images, of the metrics (both from the submaps, at
+    the export's resolution) and of the global map's metrics (at input resolution)."""
+
+    images: list[int]
+    metrics: list[int]
+    global_map: list[int]  # the held-out frames and the keyframes
+
+    @property
+    def count(self) -> int:
+        """Renders in all (a frame of both the images and the metrics is rendered once)."""
+        return len(set(self.images) | set(self.metrics)) + len(self.global_map)
+
+
+def frames_to_render(job: FinishedJob, options: ExportOptions) -> RenderPlan:
+    """Which frames the export renders (`RenderPlan`)."""
     images = []
     if options.uncertainty or options.renders:
         images = select_frames(job, options.frames, options.stride)
-    metrics = select_frames(job, "keyframes") if options.metrics else []
-    return images, metrics
+    if not options.metrics:
+        return RenderPlan(images, [], [])
+    keyframes = select_frames(job, "keyframes")
+    return RenderPlan(images, keyframes, sorted({*job.global_map.held_out_frames, *keyframes}))
 
 
 class _FrameSinks:
@@ -266,6 +290,7 @@ class _FrameSinks:
         self.writer: UncertaintyWriter | None = None
         self.evaluator = FrameEvaluator(lpips)
         self.gallery_files: list[tuple[Path, str]] = []
+        self.held_out_files: list[tuple[Path, str]] = []  # the global map's, for the report
         self.size: tuple[int, int] | None = None  # width, height of the images
 
     def add(self, item: FrameUncertainty) -> None:
@@ -300,17 +325,19 @@ def _export_frames(
     progress: Callable[[int], None],
 ) -> None:
     """One pass over the frames feeding every per-frame output, then metrics and report."""
-    image_frames, metric_frames = frames_to_render(job, options)
+    plan = frames_to_render(job, options)
     out = job.outputs
     with ExitStack() as stack:
-        sinks = _FrameSinks(job, options, stack, image_frames, metric_frames, lpips)
-        for index in sorted(set(image_frames) | set(metric_frames)):
+        sinks = _FrameSinks(job, options, stack, plan.images, plan.metrics, lpips)
+        for index in sorted(set(plan.images) | set(plan.metrics)):
             sinks.add(renderer.frame(index))
             progress(1)
         if options.metrics:
+            global_map = _evaluate_global_map(job, renderer.store, plan.global_map, sinks, lpips,
+                                              progress)  # fmt: skip
             trajectory = evaluate_trajectory(job)
             metrics = build_metrics(job, trajectory, sinks.evaluator, renderer.downscale,
-                                    sinks.size)  # fmt: skip
+                                    sinks.size, global_map)  # fmt: skip
             with atomic_file(out / METRICS_FILE) as tmp:
                 tmp.write_text(json.dumps(metrics, indent=2, allow_nan=False) + "\n")
             report.metrics = metrics
@@ -318,13 +345,37 @@ def _export_frames(
         if options.report:
             figures = _report_plots(sinks.report, trajectory, sinks.evaluator, job)
             with atomic_file(out / REPORT_FILE) as tmp:
-                write_report(tmp, metrics, figures, sinks.gallery_files)
+                write_report(tmp, metrics, figures, sinks.gallery_files, sinks.held_out_files)
             report.files += [out / REPORT_FILE, out / REPORT_DIR]
     # leaving the block renamed the temporary files and folders into place
     if sinks.h5 is not None:
         report.files += [out / UNCERTAINTY_FILE, out / "uncertainty"]
     if sinks.renders is not None:
         report.files.append(out / "renders")
+
+
+def _evaluate_global_map(job: FinishedJob, store: FrameStore, frames: list[int],
+                         sinks: _FrameSinks, lpips: Lpips | None,
+                         progress: Callable[[int], None]) -> GlobalMapEvaluation:  # fmt: skip
+    """The global map rendered at ``trajectory.txt``'s poses at input resolution on its
+    held-out frames and on the keyframes; a gallery of held-out views for the report."""
+    renderer = UncertaintyRenderer(job, store, 1, global_map=True)
+    held_out = set(job.global_map.held_out_frames)
+    evaluation = GlobalMapEvaluation(FrameEvaluator(lpips), FrameEvaluator(lpips))
+    gallery = _gallery_frames(sorted(held_out)) if sinks.report is not None else set()
+    for index in frames:
+        item = renderer.frame(index)
+        evaluation.size = (item.alpha.shape[1], item.alpha.shape[0])
+        (evaluation.held_out if index in held_out else evaluation.keyframes).add(item)
+        if index in gallery:
+            path = sinks.report / f"held_out_{index:06d}.png"
+            write_png(path, panel(item, sinks.scales))
+            sinks.held_out_files.append((path, (
+                f"held-out frame {index} (t = {item.timestamp:.3f} s), never trained on: the "
+                "global map at trajectory.txt's pose, input resolution; colour (top) and depth "
+                "(bottom): measured, rendered, error, variances")))  # fmt: skip
+        progress(1)
+    return evaluation
 
 
 def _h5_attributes(job: FinishedJob, item: FrameUncertainty) -> dict[str, Any]:

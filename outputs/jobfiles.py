@@ -21,11 +21,10 @@ from bgs_batch.slam.gaussian_map import PARAMS
 from bgs_batch.slam.loop_closure.correction import CORRECTION_KEY
 from bgs_batch.store import FrameStore
 from jobs.jobdir import JOB_FILE, lock_owner_alive
-from jobs.run import LOG_FILE, SUBMAP_DIR, SUMMARY_FILE
+from jobs.run import GLOBAL_MAP_FILE, LOG_FILE, SENSOR_FILE, SUBMAP_DIR, SUMMARY_FILE
 from outputs.trajectory import match_timestamps, read_tum
 
 TRAJECTORY_FILE = "trajectory.txt"
-SENSOR_FILE = "sensor_net.pt"
 CONFIG_FILE = "config.json"
 OUTPUT_DIR = "outputs"
 POSE_ROWS = 3  # log.jsonl stores the top 3×4 of each camera-to-world pose, row-major
@@ -35,6 +34,16 @@ def incomplete(job_dir: Path, what: str) -> InputError:
     """The error for a job directory that lacks (a valid) `what`."""
     return InputError(f"{job_dir} is not a finished job directory: {what}; "
                       "run `bgs run STORE --job-dir JOB` to completion first")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class GlobalMap:
+    """``global_map.pt``: the map of the run's global stage and what it trained on."""
+
+    params: dict[str, torch.Tensor]  # `GaussianMap` layout
+    training_frames: list[int]
+    held_out_frames: list[int]  # never in any of the stage's optimisations
+    visits_per_frame: list[int]  # steps the stage took on each frame
 
 
 @dataclass(frozen=True)
@@ -190,6 +199,22 @@ class FinishedJob:
         if not isinstance(data, dict) or not isinstance(data.get("params"), dict):
             raise incomplete(self.job_dir, f"{path.name} lacks the Gaussian parameters")
         return data
+
+    @cached_property
+    def global_map(self) -> GlobalMap:
+        """The global stage's map and record (``global_map.pt``)."""
+        path = self.job_dir / GLOBAL_MAP_FILE
+        if not path.is_file():
+            raise incomplete(self.job_dir, f"{GLOBAL_MAP_FILE} is missing (jobs made before the "
+                             "global stage need `bgs run --force`)")  # fmt: skip
+        try:
+            data = torch.load(path, weights_only=True)
+            return GlobalMap({name: data["params"][name] for name in PARAMS},
+                             [int(i) for i in data["training_frames"]],
+                             [int(i) for i in data["held_out_frames"]],
+                             [int(i) for i in data["visits_per_frame"]])  # fmt: skip
+        except Exception as err:  # torch.load raises many types on damaged files
+            raise incomplete(self.job_dir, f"{GLOBAL_MAP_FILE} is unreadable ({err})") from err
 
     def sensor_state(self) -> dict[str, torch.Tensor]:
         """The trained sensor-noise network's state dict."""

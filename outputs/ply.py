@@ -1,4 +1,4 @@
-"""Gaussian maps as PLY files in the INRIA 3DGS layout, plus merging submaps into one map.
+"""Gaussian maps as PLY files in the INRIA 3DGS layout.
 
 Layout (docs/outputs.md): one ``vertex`` element, ``binary_little_endian
 1.0``, every property ``float``, in the order ``x y z nx ny nz f_dc_0..2 opacity scale_0..2
@@ -15,14 +15,11 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from bgs_batch import __version__
 from bgs_batch.errors import InputError
-from bgs_batch.geometry import matrix_to_quat_xyzw
 
 SH_C0 = 0.28209479177387814  # degree-0 real spherical harmonic, as in INRIA's RGB2SH
-MERGE_RADIUS_M = 0.01  # LoopSplat's merge rule: skip a Gaussian with a kept one closer than 1 cm
 PLY_FORMAT = "binary_little_endian 1.0"
 PROPERTIES = (
     "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
@@ -65,33 +62,6 @@ class Splats:
     def select(self, rows: np.ndarray) -> Splats:
         """The Gaussians at `rows` (boolean mask or indices)."""
         return Splats(*(getattr(self, f.name)[rows] for f in fields(self)))
-
-    def transformed(self, transform: np.ndarray) -> Splats:
-        """Apply a rigid world correction (4×4): means move, quaternions rotate, the rest stays."""
-        rot, trans = transform[:3, :3], transform[:3, 3]
-        xyzw = matrix_to_quat_xyzw(rot)
-        correction = np.concatenate([xyzw[3:], xyzw[:3]])
-        means = (self.means.astype(np.float64) @ rot.T + trans).astype(np.float32)
-        quats = quat_multiply(correction, self.quats.astype(np.float64)).astype(np.float32)
-        return Splats(means, self.log_scales, quats, self.opacity_logits, self.colors,
-                      self.uncertainty)  # fmt: skip
-
-    @staticmethod
-    def concatenate(parts: list[Splats]) -> Splats:
-        return Splats(*(np.concatenate([getattr(p, f.name) for p in parts])
-                        for f in fields(Splats)))  # fmt: skip
-
-
-def quat_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product p ⊗ q of w-first quaternions (..., 4); p ⊗ q rotates by q, then p."""
-    pw, px, py, pz = np.moveaxis(p, -1, 0)
-    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
-    return np.stack([
-        pw * qw - px * qx - py * qy - pz * qz,
-        pw * qx + px * qw + py * qz - pz * qy,
-        pw * qy - px * qz + py * qw + pz * qx,
-        pw * qz + px * qy - py * qx + pz * qw,
-    ], -1)  # fmt: skip
 
 
 def write_ply(path: Path, splats: Splats) -> int:
@@ -145,33 +115,3 @@ def read_ply(path: Path) -> Splats:
         colors=stack("f_dc_0", "f_dc_1", "f_dc_2") * np.float32(SH_C0) + np.float32(0.5),
         uncertainty=col["uncertainty"].copy(),
     )
-
-
-def merge_submaps(submaps: list[Splats], corrections: list[np.ndarray] | None = None,
-                  radius: float = MERGE_RADIUS_M) -> Splats:  # fmt: skip
-    """One global map: submaps in order, each after its rigid correction (4×4, or none).
-
-    Thinning follows LoopSplat's merge: a Gaussian of submap k is dropped when a Gaussian kept
-    from submaps 0..k−1 lies closer than `radius` (metres); Gaussians within one submap are all
-    kept (mapping already spaces them). Non-finite means are dropped first.
-    """
-    if not submaps:
-        raise ValueError("no submaps to merge")
-    corrections = corrections or [np.eye(4)] * len(submaps)
-    if len(corrections) != len(submaps):
-        raise ValueError(f"{len(corrections)} corrections for {len(submaps)} submaps")
-    kept: list[Splats] = []
-    kept_means = np.zeros((0, 3))
-    for splats, correction in zip(submaps, corrections, strict=True):
-        moved = splats.transformed(np.asarray(correction, np.float64))
-        moved = moved.select(np.all(np.isfinite(moved.means), axis=1))
-        if len(kept_means) and len(moved):
-            # only kept Gaussians near this submap's box can be neighbours: a small tree
-            low, high = moved.means.min(0) - radius, moved.means.max(0) + radius
-            nearby = kept_means[np.all((kept_means >= low) & (kept_means <= high), axis=1)]
-            if len(nearby):
-                distance, _ = cKDTree(nearby).query(moved.means, distance_upper_bound=radius)
-                moved = moved.select(~(distance < radius))
-        kept.append(moved)
-        kept_means = np.concatenate([kept_means, moved.means])
-    return Splats.concatenate(kept)

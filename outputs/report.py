@@ -96,13 +96,37 @@ dd { margin-left: 1.5em; font-size: 0.9em; }
 """
 
 
-def write_report(path: Path, metrics: dict[str, Any], plots: list[tuple[Path, str]],
-                 gallery: list[tuple[Path, str]]) -> None:  # fmt: skip
-    """Write the page: summary tables, plots, gallery, conventions and the raw metrics."""
-    rendering = metrics["rendering"]
-    render_rows = [(label, rendering[key]) for key, label in RENDERING_LABELS.items()]
+def _rendering_rows(rendering: dict[str, Any]) -> list[tuple[str, Any]]:
+    rows = [(label, rendering[key]) for key, label in RENDERING_LABELS.items()]
     if rendering.get("ms_ssim_note"):
-        render_rows.append(("MS-SSIM note", rendering["ms_ssim_note"]))
+        rows.append(("MS-SSIM note", rendering["ms_ssim_note"]))
+    return rows
+
+
+def _global_map_part(global_map: dict[str, Any], held_out: list[tuple[Path, str]]) -> list[str]:
+    """The global map's section: its numbers on held-out frames and keyframes, side by side,
+    and the held-out views."""
+    res = global_map["resolution"]
+    held, keys = global_map["held_out"]["rendering"], global_map["keyframes"]["rendering"]
+    rows = "".join(f"<tr><td>{html.escape(label)}</td><td>{_fmt(held[key])}</td>"
+                   f"<td>{_fmt(keys[key])}</td></tr>"
+                   for key, label in RENDERING_LABELS.items())  # fmt: skip
+    return [
+        "<h2>Global map (global.ply)</h2>",
+        f"<p>{global_map['gaussians']} Gaussians, rendered at the poses of trajectory.txt at "
+        f"{res['width']}x{res['height']} (input resolution); held-out frames were never "
+        f"trained on ({global_map['training_frames']} frames were).</p>",
+        f"<table><tr><th></th><th>held-out frames</th><th>keyframes</th></tr>{rows}</table>",
+        *(_image(p, caption) for p, caption in held_out),
+    ]
+
+
+def write_report(path: Path, metrics: dict[str, Any], plots: list[tuple[Path, str]],
+                 gallery: list[tuple[Path, str]],
+                 held_out: list[tuple[Path, str]] = ()) -> None:  # fmt: skip
+    """Write the page: summary tables, the global map on held-out views, plots, gallery,
+    conventions and the raw metrics."""
+    render_rows = _rendering_rows(metrics["rendering"])
     res = metrics["resolution"]
     title = f"bgs-batch report: {Path(metrics['job']).name}"
     parts = [
@@ -113,7 +137,8 @@ def write_report(path: Path, metrics: dict[str, Any], plots: list[tuple[Path, st
                 ("evaluated resolution", f"{res['width']}x{res['height']} (input / "
                                          f"{res['downscale']})")]),  # fmt: skip
         "<h2>Trajectory</h2>", _table(_ate_rows(metrics["ate"])),
-        "<h2>Rendering (keyframes)</h2>", _table(render_rows),
+        *_global_map_part(metrics["global_map"], list(held_out)),
+        "<h2>Rendering (keyframes, each from its own submap)</h2>", _table(render_rows),
         "<h2>Uncertainty</h2>", _table(_uncertainty_rows(metrics["uncertainty"])),
         "<h2>Run</h2>", _table(_run_rows(metrics["run"])),
         "<h2>Plots</h2>", *(_image(p, caption) for p, caption in plots),

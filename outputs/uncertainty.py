@@ -1,9 +1,10 @@
 """Per-frame predictive uncertainty re-rendered from a finished job (docs/outputs.md).
 
-For a frame, `UncertaintyRenderer.frame` renders the frame's submap at the frame's final
-estimated pose (``trajectory.txt``: after any loop-closure correction, as are the submap files'
-parameters) and evaluates the saved sensor-noise network on the measured frame, then assembles
-the variances with the SLAM's own `predictive_variance` (paper Eq. 10, 11):
+For a frame, `UncertaintyRenderer.frame` renders the frame's submap at the pose that submap was
+fitted at (the frame's tracked pose moved by its submap's loop-closure correction, as the submap
+files' parameters are), or the global map at the pose of ``trajectory.txt``, and evaluates the
+saved sensor-noise network on the measured frame, then assembles the variances with the SLAM's
+own `predictive_variance` (paper Eq. 10, 11):
 
 - Σ_C = σ²_sensor,C + map_C and Σ_D = σ²_sensor,D + map_D, where the map term is the rendered
   opacity-induced variance V (Eq. 3) plus its floor, replaced by the large "unobserved" value
@@ -33,7 +34,7 @@ import torch
 
 from bgs_batch.errors import InputError
 from bgs_batch.render import Camera, Gaussians, render
-from bgs_batch.slam.frames import Level, block_mean, downsample, prepare_frame, repeat_blocks
+from bgs_batch.slam.frames import Level, between_levels, downsample, prepare_frame
 from bgs_batch.slam.losses import predictive_variances
 from bgs_batch.slam.mapping import Keyframe
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
@@ -105,9 +106,13 @@ def _numpy(t: torch.Tensor) -> np.ndarray:
 
 
 class UncertaintyRenderer:
-    """Renders `FrameUncertainty` for frames of a finished job, one frame at a time."""
+    """Renders `FrameUncertainty` for frames of a finished job, one frame at a time: from each
+    frame's own submap at the pose that submap was made with (the default), or with
+    `global_map` from the global map (``global_map.pt``, what ``global.ply`` holds) at the
+    pose of ``trajectory.txt``, which is where the global stage fitted it."""
 
-    def __init__(self, job: FinishedJob, store: FrameStore, downscale: int | None = None) -> None:
+    def __init__(self, job: FinishedJob, store: FrameStore, downscale: int | None = None,
+                 global_map: bool = False) -> None:  # fmt: skip
         self.job, self.store, self.cfg = job, store, job.config
         self.downscale = self.cfg.mapping.downscale if downscale is None else downscale
         check_downscale(self.downscale, self.cfg.mapping.downscale)
@@ -119,7 +124,11 @@ class UncertaintyRenderer:
             raise InputError(f"{job.job_dir}/sensor_net.pt does not fit the run's sensor "
                              f"network ({err})") from err  # fmt: skip
         self.sensor.eval()
-        self.poses = job.mapped_poses()
+        self.global_map = Gaussians(**job.global_map.params) if global_map else None
+        self.poses = job.trajectory()[1] if global_map else job.mapped_poses()
+        if len(self.poses) != len(job.events):
+            raise InputError(f"{job.job_dir}: trajectory.txt holds {len(self.poses)} poses for "
+                             f"{len(job.events)} frames; the job is damaged")  # fmt: skip
         self._submap: tuple[int, Gaussians] | None = None
 
     def _gaussians(self, submap: int) -> Gaussians:
@@ -134,9 +143,7 @@ class UncertaintyRenderer:
         """σ²_sensor (colour, depth) as `Slam.process` computes it, at the render resolution."""
         u, m = self.cfg.uncertainty, self.cfg.mapping.downscale
         sensor = self.sensor(mapping, u.sensor_downscale)
-        if self.downscale >= m:
-            return tuple(block_mean(v, self.downscale // m) for v in sensor)
-        return tuple(repeat_blocks(v, m // self.downscale, height, width) for v in sensor)
+        return tuple(between_levels(v, m, self.downscale, height, width) for v in sensor)
 
     def frame(self, index: int) -> FrameUncertainty:
         """Everything of frame `index` (see the module's conventions)."""
@@ -149,7 +156,9 @@ class UncertaintyRenderer:
         with torch.no_grad():
             sensor_c, sensor_d = self._sensor(mapping, height, width)
             w2c = Keyframe(index, level, self.poses[index]).w2c  # as the SLAM's view matrices
-            out = render(self._gaussians(event.submap), w2c, level.camera, full_grad=u.full_grad)
+            gaussians = (self._gaussians(event.submap) if self.global_map is None
+                         else self.global_map)  # fmt: skip
+            out = render(gaussians, w2c, level.camera, full_grad=u.full_grad)
             zero = torch.zeros(())
             gain = self.sensor.gains.map
             var_c, var_d = predictive_variances(out, sensor_c, sensor_d, u, gain)

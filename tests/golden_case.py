@@ -5,7 +5,7 @@ Usage: python tests/golden_case.py CASE WORKDIR RECORD.json   (tests/test_golden
 A case converts a fixed input, runs `bgs run` (with its default export) and condenses the
 results: the trajectory file (text, compared line by line), every keyframe decision with both
 surprise scores, the metrics of `metrics.json`, and summary statistics (count, mean, std,
-quantiles) of the merged PLY's properties and of each uncertainty image dataset.
+quantiles) of the global map PLY's properties and of each uncertainty image dataset.
 
 Runs are deterministic on one machine; across CPUs, every library that picks its kernels by the
 CPU it finds would change the order of vectorised sums, which a SLAM run then amplifies. The
@@ -62,6 +62,8 @@ METRICS = {
     "depth_l1_cm": ("rendering", "depth_l1_cm"),
     "ause_color": ("uncertainty", "ause_mae_color", "ause_raw"),
     "ause_depth": ("uncertainty", "ause_mae_depth", "ause_raw"),
+    "global_held_out_psnr_db": ("global_map", "held_out", "rendering", "psnr_db"),
+    "global_keyframes_psnr_db": ("global_map", "keyframes", "rendering", "psnr_db"),
 }
 
 

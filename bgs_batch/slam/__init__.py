@@ -19,7 +19,9 @@
    and a pose graph corrects submaps and poses.
 
 At the end of a run (`Slam.finish`) each frozen submap's variances and the sensor network are
-refined by the NLL (Eq. 13, 14) with the geometry fixed.
+refined by the NLL (Eq. 13, 14) with the geometry fixed; then the global stage (`global_map`,
+`Slam.global_stage`) merges the submaps where each owns the surface and optimises the merged
+map at the reported poses on every frame but the held-out ones.
 """
 
 from bgs_batch.slam.pipeline import Slam

@@ -106,3 +106,14 @@ def repeat_blocks(image: torch.Tensor, factor: int, height: int, width: int) -> 
         big = F.pad(big.permute(2, 0, 1)[None], (0, pad_w, 0, pad_h), mode="replicate")
         big = big[0].permute(1, 2, 0)
     return big
+
+
+def between_levels(image: torch.Tensor, source: int, target: int, height: int, width: int
+                   ) -> torch.Tensor:  # fmt: skip
+    """A per-pixel map [h,w,C] of the level at input resolution / `source` on the level at input
+    resolution / `target` (`height` × `width`): block means onto a coarser level, each pixel
+    repeated over its block onto a finer one (how the sensor variances, computed at mapping
+    resolution, reach the other levels). One factor must divide the other."""
+    if target >= source:
+        return block_mean(image, target // source)
+    return repeat_blocks(image, source // target, height, width)

@@ -24,7 +24,8 @@ from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.calibration import DepthGains, depth_samples, fit_depth_gains
 from bgs_batch.slam.depth_timing import depth_motion, interval_motion
 from bgs_batch.slam.frames import Level, prepare_frame
-from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY, GaussianMap
+from bgs_batch.slam.gaussian_map import PARAMS, UNCERTAINTY_KEY, GaussianMap
+from bgs_batch.slam.global_map import GlobalMapStage, Ownership, split_frames, submap_views
 from bgs_batch.slam.keyframes import KeyframeSelector
 from bgs_batch.slam.loop_closure import LoopCloser, inject_drift
 from bgs_batch.slam.loop_closure.correction import (
@@ -50,6 +51,7 @@ class Timings:
     submaps: float = 0.0
     loop_closure: float = 0.0  # features, detection, registration, pose graph
     refinement: float = 0.0  # uncertainty refinement of the frozen submaps at the end
+    global_map: float = 0.0  # the global stage: merge and optimisation (`global_map`)
 
     def add(self, stage: str, seconds: float) -> None:
         setattr(self, stage, getattr(self, stage) + seconds)
@@ -77,10 +79,11 @@ class Slam:
     submap_dir: Path
     poses: list[np.ndarray] = field(default_factory=list)
     timestamps: list[float] = field(default_factory=list)  # of the frames tracked so far
-    # per keyframe, the warp that moved its depth image to its colour image's time (frames
-    # without one had nothing to move): keyframes are re-read on resume and for refinement
+    # per frame, the warp that moved its depth image to its colour image's time (frames
+    # without one had nothing to move): frames are re-read on resume, for the refinement and
+    # for the global stage, and prepared as when they were tracked
     depth_motions: dict[int, np.ndarray] = field(default_factory=dict)
-    # per keyframe, the camera's motion over its rows' readout (`rolling_shutter`)
+    # per frame, the camera's motion over its rows' readout (`rolling_shutter`)
     readout_motions: dict[int, np.ndarray] = field(default_factory=dict)
     submaps: list[SubmapRecord] = field(default_factory=list)
     keyframe_frames: list[int] = field(default_factory=list)
@@ -142,11 +145,11 @@ class Slam:
             first_of_submap = True
         decision = self.selector.decide(frame.index, score_c, score_d, first_of_submap)
         event.update(decision.as_dict())
+        if motion is not None:
+            self.depth_motions[frame.index] = motion
+        if readout is not None:
+            self.readout_motions[frame.index] = readout
         if decision.keyframe:
-            if motion is not None:
-                self.depth_motions[frame.index] = motion
-            if readout is not None:
-                self.readout_motions[frame.index] = readout
             self._add_keyframe(frame.index, full, level, c2w, first_of_submap, event)
         event.update(submap=len(self.submaps), gaussians=len(self.gmap),
                      pose=logged_rows(c2w),
@@ -349,11 +352,39 @@ class Slam:
         drifted = state.get("drifted_prev")
         self.drifted_prev = None if drifted is None else np.ascontiguousarray(drifted.numpy())
 
+    def prepare_index(self, index: int, read_frame: Callable[[int], Frame]) -> tuple[Level, Level]:
+        """Frame `index` from the store, prepared as when it was tracked."""
+        return self.prepare(read_frame(index), self.depth_motions.get(index),
+                            self.readout_motions.get(index))  # fmt: skip
+
+    def global_stage(self, poses: np.ndarray, read_frame: Callable[[int], Frame]
+                     ) -> GlobalMapStage:  # fmt: skip
+        """The end-of-run global stage (`global_map`), to be fitted at `poses` (the reported
+        trajectory), from the frozen submaps as corrected and refined, merged."""
+        split = split_frames(len(self.poses), set(self.keyframe_frames),
+                             self.cfg.global_map.hold_out_every)  # fmt: skip
+        with self.timings.measure("global_map"):
+            count = len(self.submaps)
+            means = [self._submap_params(k)["means"].numpy() for k in range(count)]
+            ownership = Ownership(means, self.cfg.global_map)
+            for k, record in enumerate(self.submaps):
+                keyframes = [self._reread_keyframe(i, read_frame) for i in record.keyframes]
+                for view in submap_views(k, self._submap_params(k), keyframes):
+                    ownership.add(view)
+            masks = [torch.from_numpy(ownership.keep(k)) for k in range(count)]
+            parts = [self._submap_params(k) for k in range(count)]
+            merged = {name: torch.cat([p[name][m] for p, m in zip(parts, masks, strict=True)])
+                      for name in PARAMS}  # fmt: skip
+        kept = [int(mask.sum()) for mask in masks]
+        return GlobalMapStage(self.cfg, merged, poses, split, self.sensor, kept)
+
+    def _submap_params(self, index: int) -> dict[str, torch.Tensor]:
+        """The Gaussians of frozen submap `index` as corrected and refined (its file's params)."""
+        return torch.load(self.submaps[index].path, weights_only=True)["params"]
+
     def _reread_keyframe(self, index: int, read_frame: Callable[[int], Frame]) -> Keyframe:
         """Keyframe `index` from the store, prepared as when it was mapped."""
-        level = self.prepare(read_frame(index), self.depth_motions.get(index),
-                             self.readout_motions.get(index))[1]
-        return Keyframe(index, level, self.poses[index])
+        return Keyframe(index, self.prepare_index(index, read_frame)[1], self.poses[index])
 
     def finish(self, read_frame: Callable[[int], Frame]) -> None:
         """Write the last submap too (LoopSplat drops it; its frames deserve a map), then refine

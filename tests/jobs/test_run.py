@@ -3,7 +3,6 @@
 import errno
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -18,10 +17,11 @@ from conftest import make_tum_folder
 
 from bgs_batch.cli import main
 from bgs_batch.config import load_config
+from bgs_batch.slam import Slam
 from converters.tum import convert_tum
 from jobs.checkpoint import CHECKPOINT_DIR, load_latest, write_checkpoint
 from jobs.jobdir import LOCK_FILE, JobError, job_lock
-from jobs.run import TIMING_FIELDS, run_job
+from jobs.run import GLOBAL_MAP_FILE, TIMING_FIELDS, run_job
 
 TINY = ["mapping.iterations=2", "mapping.new_submap_iterations=2", "tracking.iterations=2"]
 
@@ -126,7 +126,9 @@ RESUME = ["mapping.iterations=6", "mapping.new_submap_iterations=6", "tracking.i
           "checkpoint_every=2",
           # the store's depth is stamped 3 ms after colour: resumed runs must move the
           # keyframes' depth they re-read exactly as the uninterrupted run did
-          "align_depth_time=true"]  # fmt: skip
+          "align_depth_time=true",
+          # the global stage checkpoints often enough to be stopped in its middle
+          "global_map.hold_out_every=4", "global_map.checkpoint_every=3"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -147,6 +149,9 @@ def assert_same_result(job, reference):
         a = torch.load(job / "submaps" / name, weights_only=True)["params"]
         b = torch.load(reference / "submaps" / name, weights_only=True)["params"]
         assert all(torch.equal(a[k], b[k]) for k in b)
+    ours, theirs = (torch.load(j / GLOBAL_MAP_FILE, weights_only=True) for j in (job, reference))
+    assert all(torch.equal(ours["params"][k], theirs["params"][k]) for k in theirs["params"])
+    assert ours["visits_per_frame"] == theirs["visits_per_frame"]
     ours = [json.loads(x) for x in (job / "log.jsonl").read_text().splitlines()]
     theirs = [json.loads(x) for x in (reference / "log.jsonl").read_text().splitlines()]
     strip = TIMING_FIELDS
@@ -184,19 +189,66 @@ def test_kill_9_then_resume_equals_uninterrupted(resume_case, tmp_path, kill_at)
     assert_same_result(job, reference)
 
 
+def wait_for_global_stage(job, proc, end_steps=2):
+    """Until a checkpoint of the global stage with `end_steps` − 1 visits done exists."""
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline and proc.poll() is None:
+        names = [p.name for p in (job / CHECKPOINT_DIR).glob("*.pt")]
+        if any(int(name.split("-")[1]) >= end_steps for name in names):
+            return
+        time.sleep(0.01)
+    raise AssertionError("the run ended or stalled before its global stage checkpointed")
+
+
 @pytest.mark.slow
-def test_a_run_stopped_after_its_frames_repeats_the_end_to_the_same_files(resume_case, tmp_path):
-    """Stopped in `Slam.finish` (the end-of-run uncertainty refinement has rewritten submap
-    files, no summary yet): the resumed run refines from the mapped r_i again, not twice."""
+def test_kill_9_in_the_global_stage_then_resume_equals_uninterrupted(resume_case, tmp_path):
+    store, reference = resume_case
+    job = tmp_path / "job"
+    proc = bgs_run(store, job)
+    wait_for_global_stage(job, proc)
+    proc.kill()
+    proc.wait()
+    assert not (job / "summary.json").exists()
+    assert load_latest(job)[1]["global_map"]["visits"] >= 3  # resumes inside the stage
+    run_job(store, job, load_config("cpu", RESUME))
+    assert_same_result(job, reference)
+
+
+@pytest.mark.slow
+def test_sigterm_in_the_global_stage_checkpoints_exits_75_and_resumes(resume_case, tmp_path):
+    store, reference = resume_case
+    job = tmp_path / "job"
+    proc = bgs_run(store, job)
+    wait_for_global_stage(job, proc, end_steps=1)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 75, err
+    assert "in the global stage after" in err and "continues where it stopped" in err
+    run_job(store, job, load_config("cpu", RESUME))
+    assert_same_result(job, reference)
+
+
+@pytest.mark.slow
+def test_a_run_stopped_after_its_frames_repeats_the_end_to_the_same_files(
+        resume_case, tmp_path, monkeypatch):  # fmt: skip
+    """Stopped after `Slam.finish` (the end-of-run uncertainty refinement has rewritten submap
+    files) but before the global stage's first checkpoint: the resumed run refines from the
+    mapped r_i again, not twice."""
     store, reference = resume_case
     first = torch.load(reference / "submaps/000000.pt", weights_only=True)
     logits = [first[key]["uncertainty_logits"] for key in ("params", "raw_params")]
     assert not torch.equal(*logits)  # the cpu preset refines; the raw ones stay as mapped
     job = tmp_path / "job"
-    shutil.copytree(reference, job)
-    (job / "summary.json").unlink()
-    assert load_latest(job)[0] == 12  # resumes with every frame done: only `finish` runs
-    run_job(store, job, load_config("cpu", RESUME))
+
+    def killed(*_args):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(Slam, "global_stage", killed)
+        with pytest.raises(KeyboardInterrupt):
+            run_job(store, job, load_config("cpu", RESUME))
+    assert load_latest(job)[0] == 12 and "global_map" not in load_latest(job)[1]
+    run_job(store, job, load_config("cpu", RESUME))  # every frame done: `finish` runs again
     assert_same_result(job, reference)
 
 

@@ -22,8 +22,10 @@ def run(*args):
 
 
 def make_job(job, timestamps, poses, gaussians=(3, 4)):
-    """A job directory as `bgs run` writes it: submaps/*.pt and trajectory.txt."""
+    """A job directory as `bgs run` writes it: submaps/*.pt, global_map.pt (the submaps
+    concatenated, trained on every frame) and trajectory.txt."""
     (job / "submaps").mkdir(parents=True)
+    parts = []
     for index, n in enumerate(gaussians):
         params = {"means": torch.randn(n, 3) + 10 * index, "log_scales": torch.full((n, 3), -4.0),
                   "quats": torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
@@ -31,6 +33,12 @@ def make_job(job, timestamps, poses, gaussians=(3, 4)):
                   "uncertainty_logits": torch.full((n,), -7.0)}  # fmt: skip
         torch.save({"params": params, "keyframes": torch.tensor([index]), "first_frame": index},
                    job / "submaps" / f"{index:06d}.pt")  # fmt: skip
+        parts.append(params)
+    merged = {name: torch.cat([p[name] for p in parts]) for name in parts[0]}
+    frames = list(range(len(timestamps)))
+    torch.save({"params": merged, "merged_from": list(gaussians), "training_frames": frames,
+                "held_out_frames": [], "visits": 0, "visits_per_frame": [0] * len(frames)},
+               job / "global_map.pt")  # fmt: skip
     write_tum(job / "trajectory.txt", timestamps, poses)
 
 

@@ -5,8 +5,7 @@ import pytest
 from plyfile import PlyData
 
 from bgs_batch.errors import InputError
-from bgs_batch.geometry import quat_xyzw_to_matrix
-from outputs.ply import PROPERTIES, SH_C0, Splats, merge_submaps, read_ply, write_ply
+from outputs.ply import PROPERTIES, SH_C0, Splats, read_ply, write_ply
 
 INRIA_ORDER = [
     "x",
@@ -89,47 +88,6 @@ def test_round_trip_and_non_finite_rows_dropped(tmp_path):
     for name in ("means", "log_scales", "quats", "opacity_logits", "uncertainty"):
         np.testing.assert_array_equal(getattr(back, name), getattr(expected, name), err_msg=name)
     np.testing.assert_allclose(back.colors, expected.colors, atol=1e-6)
-
-
-def test_merge_thins_only_near_duplicates_across_submaps():
-    first = splats_at([[0, 0, 0], [1, 0, 0]])
-    second = splats_at([[0.005, 0, 0], [1.05, 0, 0]])  # 5 mm and 5 cm from the first submap's
-    merged = merge_submaps([first, second])
-    np.testing.assert_allclose(merged.means, [[0, 0, 0], [1, 0, 0], [1.05, 0, 0]], atol=1e-7)
-    assert len(merge_submaps([splats_at([[0, 0, 0], [0.005, 0, 0]])])) == 2  # within one submap
-
-
-def test_correction_moves_means_and_rotations_consistently():
-    splats = Splats.from_params(random_params(10, seed=1))
-    angle = 0.7
-    correction = np.eye(4)
-    correction[:3, :3] = [
-        [np.cos(angle), -np.sin(angle), 0],
-        [np.sin(angle), np.cos(angle), 0],
-        [0, 0, 1],
-    ]
-    correction[:3, 3] = [0.5, -1.0, 2.0]
-    moved = merge_submaps([splats], [correction])
-    np.testing.assert_allclose(
-        moved.means, splats.means @ correction[:3, :3].T + [0.5, -1, 2], atol=1e-5
-    )
-
-    def rotations(quats_wxyz):
-        unit = quats_wxyz / np.linalg.norm(quats_wxyz, axis=1, keepdims=True)
-        return quat_xyzw_to_matrix(np.roll(unit, -1, axis=1))
-
-    np.testing.assert_allclose(
-        rotations(moved.quats), correction[:3, :3] @ rotations(splats.quats), atol=1e-5
-    )
-    np.testing.assert_allclose(
-        np.linalg.norm(moved.quats, axis=1), np.linalg.norm(splats.quats, axis=1), rtol=1e-5
-    )
-    np.testing.assert_array_equal(moved.log_scales, splats.log_scales)
-
-
-def test_merge_rejects_mismatched_corrections():
-    with pytest.raises(ValueError):
-        merge_submaps([splats_at([[0, 0, 0]])], [np.eye(4), np.eye(4)])
 
 
 def test_reader_rejects_other_layouts(tmp_path):
