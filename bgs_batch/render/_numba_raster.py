@@ -68,8 +68,15 @@ SIGMA_MAX = math.log(1 / ALPHA_MIN) + 1e-3
 """Beyond this ``σ``, ``α ≤ e^-σ < 1/255`` for any opacity ≤ 1: the pixel is skipped exactly."""
 
 FASTMATH = {"contract", "arcp", "nsz"}
-"""LLVM fast-math flags of the hot kernels: FMA contraction and reciprocal rewrites only (about
-25% off the backward). No reassociation, so sums keep their order (determinism)."""
+"""LLVM fast-math flags of the entry kernels (`raster_fwd`, `raster_bwd`): FMA contraction and
+reciprocal rewrites, no reassociation, so sums keep their order (determinism)."""
+CALLEE_FASTMATH = {"nsz"}
+"""The flags of every function the entry kernels call (declared, or a callee would take its
+caller's): none that changes a value. Numba links a callee into each caller as a
+``linkonce_odr`` copy and a call may run any loaded copy, assuming they all compute the same;
+contraction and reciprocal rewrites depend on where a copy was inlined, so a process that had
+just compiled the backward ran other code than the cache it wrote (tests/test_kernel_cache.py).
+The hot loops vectorise as before: measured within noise of the contracted ones."""
 
 S_MEAN, S_CONIC, S_OPACITY, S_FEAT, S_VAR = 0, 2, 5, 6, 10
 """Offsets of the parameter groups in a gradient slot."""
@@ -104,7 +111,7 @@ def _exp_neg_polynomial(sigma, consts):
     return p
 
 
-@overload(exp_neg, jit_options={"fastmath": FASTMATH})
+@overload(exp_neg, jit_options={"fastmath": CALLEE_FASTMATH})
 def _exp_neg_typed(sigma, consts):
     if sigma == numba.types.float32:
         return _exp_neg_polynomial
@@ -221,7 +228,7 @@ def lane_index(dx, dy):
     return block * BLOCK_LANES + dy * LANE_BLOCK + column
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=CALLEE_FASTMATH)
 def tile_lanes(xs, ys, px0, py0, buf):
     """Pixel coordinates of the ``TILE_PIXELS`` lanes (:func:`lane_index` order) of the tile at
     ``(px0, py0)`` into fields 0 (x) and 1 (y) of `buf`; ``xs``, ``ys`` cover whole tiles, so
@@ -233,7 +240,7 @@ def tile_lanes(xs, ys, px0, py0, buf):
             buf[FIELD_STRIDE + p] = ys[py0 + dy]
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath=CALLEE_FASTMATH)
 def box_blocks(rects, g, px0, py0, py1, align):
     """The lane blocks ``b0..b1`` that Gaussian g's box meets in the tile at ``(px0, py0)``
     (pixel rows ``py0:py1``), and the lane range ``r0:r1`` (unsigned) of its rows within a block,
@@ -288,7 +295,7 @@ A_MEAN_X, A_MEAN_Y, A_CONIC_A, A_CONIC_B, A_CONIC_C, A_OPACITY = (
 A_FEAT, A_VAR = slot_lanes(S_FEAT), slot_lanes(S_VAR)
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(cache=True, fastmath=CALLEE_FASTMATH)
 def gaussian_weight(dx, dy, a, b, c, consts):
     """``e^-σ`` (see :func:`exp_neg`), ``σ = ½(a dx² + c dy²) + b dx dy`` capped at ``SIGMA_MAX``.
 
@@ -299,7 +306,7 @@ def gaussian_weight(dx, dy, a, b, c, consts):
     return exp_neg(sigma, consts)
 
 
-@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
+@numba.njit(cache=True, fastmath=CALLEE_FASTMATH, error_model="numpy")
 def blend_span(buf, done, last, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, consts):
     """Forward, one intersection: blend Gaussian ``kk`` (opacity ``o``, variance ``v``, mean,
     conic, features ``fs``, box columns ``x0..x1``) into lanes ``p0:p1`` of a tile, front to
@@ -411,7 +418,7 @@ def raster_fwd(
                         out_dvdf[py, px, ch] = s1 - delta * s0
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(cache=True, fastmath=CALLEE_FASTMATH)
 def lane_total(acc, e):
     """Sum of the ``STEP_LANES`` partials of slot entry e, pairwise (a fixed tree), so the
     order never depends on the compiled code."""
@@ -424,7 +431,7 @@ def lane_total(acc, e):
     return acc[base]
 
 
-@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
+@numba.njit(cache=True, fastmath=CALLEE_FASTMATH, error_model="numpy")
 def unblend_lane(buf, last, j, kk, mx, my, a, b, c, o, x0, x1, y0, y1, consts):
     """Backward, lane j: undo intersection kk's blend (box ``x0..x1`` × ``y0..y1``),
     ``T_i = T_{i+1} / (1 − α_i)`` (unchanged where it was not blended), and return
@@ -444,7 +451,7 @@ def unblend_lane(buf, last, j, kk, mx, my, a, b, c, o, x0, x1, y0, y1, consts):
     return dx, dy, e, alpha, inverse, t, (t * t if alpha > zero else zero)
 
 
-@numba.njit(cache=True, fastmath=FASTMATH)
+@numba.njit(cache=True, fastmath=CALLEE_FASTMATH)
 def variance_residual(buf, j, fs, zero):
     """``q = Σ_ch ∂L/∂V (f − F)²`` at lane j for the features ``fs``."""
     q = zero
@@ -455,7 +462,7 @@ def variance_residual(buf, j, fs, zero):
     return q
 
 
-@numba.njit(cache=True, fastmath=FASTMATH, error_model="numpy")
+@numba.njit(cache=True, fastmath=CALLEE_FASTMATH, error_model="numpy")
 def unblend_span(buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, y0, y1,
                  r_weight, variance_only, consts):  # fmt: skip
     """Backward, one intersection and lane block (see :func:`blend_span`): undo Gaussian
