@@ -5,7 +5,10 @@ OpenCV's ``imdecode`` fills the missing rows of a truncated JPEG with grey and r
 without complaint, so every converter decodes through `decode`, which first checks that the
 bytes end where their format says an image ends: a JPEG with its end-of-image marker (FF D9;
 inside the entropy-coded data an FF byte is always stuffed or a restart marker, so the marker
-can only end the image), a PNG with its IEND chunk.
+can only end the image), a PNG with its IEND chunk. A JPEG damaged in its middle keeps its end
+marker, and libjpeg decodes it with a warning ("Corrupt JPEG data: …") that OpenCV only prints:
+such an image is first decoded by libjpeg-turbo through simplejpeg in strict mode, where every
+warning is an error. The pixels still come from OpenCV, so a whole image decodes as before.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import simplejpeg
 
 from bgs_batch.errors import naming
 
@@ -22,6 +26,9 @@ JPEG_START, JPEG_END = b"\xff\xd8", b"\xff\xd9"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk's type and CRC
 TRAILING_PADDING = b"\x00\r\n\t "  # bytes some writers append after the image
+# OpenCV's own warnings ("[ WARN:0@…] …") would reach the terminal before the one-line error
+# that names the file; errors still come through
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
 class ImageDecodeError(ValueError):
@@ -39,6 +46,11 @@ def decode(data: Any, flags: int, what: str = "image") -> np.ndarray:
                                "marker")  # fmt: skip
     if head == PNG_SIGNATURE and not tail.endswith(PNG_END):
         raise ImageDecodeError(f"truncated PNG {what}: it has no IEND chunk at its end")
+    if head.startswith(JPEG_START):
+        try:
+            simplejpeg.decode_jpeg(buffer, strict=True)
+        except ValueError as err:
+            raise ImageDecodeError(f"corrupt JPEG {what}: {err}") from None
     image = cv2.imdecode(buffer, flags)
     if image is None:
         raise ImageDecodeError(f"corrupt or truncated {what} data")
