@@ -10,6 +10,7 @@ removed and the target is kept. Temporary names start with ``.tmp-`` on the same
 
 from __future__ import annotations
 
+import fcntl
 import io
 import os
 import shutil
@@ -19,14 +20,57 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from bgs_batch.errors import naming
+from bgs_batch.errors import InUseError, naming
 
 TEMP_PREFIX = ".tmp-"
+NAME_MAX = 255  # bytes of one name on Linux's file systems (ext4, xfs, btrfs, tmpfs, NFS)
+
+
+def fitted_name(name: str, suffix: str, prefix: str = "") -> str:
+    """``prefix + name + suffix``, with `name` shortened (from its end) so that the whole fits
+    in `NAME_MAX` bytes: a legal output name must not fail because of a temporary name."""
+    room = NAME_MAX - len((prefix + suffix).encode())
+    encoded = name.encode()
+    if len(encoded) > room:
+        name = encoded[:room].decode(errors="ignore")
+    return prefix + name + suffix
 
 
 def temp_name(path: Path, tag: str = "") -> Path:
     """A unique, hidden name beside `path`."""
-    return path.with_name(f"{TEMP_PREFIX}{path.name}.{tag}{os.getpid()}.{uuid.uuid4().hex[:8]}")
+    suffix = f".{tag}{os.getpid()}.{uuid.uuid4().hex[:8]}"
+    return path.with_name(fitted_name(path.name, suffix, TEMP_PREFIX))
+
+
+@contextmanager
+def writer_lock(path: Path, what: str) -> Iterator[None]:
+    """Be the only process writing `path` for the duration of the block: an flock on a hidden
+    lock file beside it (``.lock-NAME``, removed at the end; one left by a killed process is
+    held by nobody and taken over). Another writer gets an `InUseError` naming the process
+    (`what` says which command, for the message)."""
+    lock = path.with_name(fitted_name(path.name, "", ".lock-"))
+    while True:
+        fd = os.open(lock, os.O_CREAT | os.O_RDWR, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            owner = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+            os.close(fd)
+            raise InUseError(f"{path} is being written by another {what} (process {owner}); "
+                             "wait for it to finish, or choose another output") from None
+        try:
+            if os.fstat(fd).st_ino == os.stat(lock).st_ino:  # not unlinked by its last owner
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield
+    finally:
+        lock.unlink(missing_ok=True)
+        os.close(fd)
 
 
 def remove_temporaries(folder: Path) -> list[Path]:

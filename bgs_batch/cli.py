@@ -533,12 +533,15 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
     Example:
       bgs run fr1_rpy.h5 --job-dir jobs/fr1_rpy --preset cpu --set keyframes.mode=every
     """
-    from bgs_batch.config import load_config
+    from bgs_batch.config import load_config, override_notes
     from bgs_batch.progress import progress_bar
     from bgs_batch.store import FrameStore
+    from jobs.preemption import stop_requests
     from jobs.run import run_job
 
     cfg = load_config(preset, list(overrides))
+    for note in override_notes(cfg, list(overrides)):
+        click.echo(f"Note: {note}", err=True)
     with FrameStore(store) as opened:
         total = len(opened) if max_frames is None else min(max_frames, len(opened))
     keyframes = []
@@ -549,18 +552,23 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
         status = f"{sum(keyframes)} keyframes" + (f", loss {loss:.3g}" if loss else "")
         advance(1, status)
 
-    with progress_bar("SLAM", total, _show_progress(ctx)) as advance:
-        summary = run_job(store, job_dir, cfg, max_frames=max_frames, force=force,
-                          on_frame=on_frame)  # fmt: skip
-    ate = "n/a (no GT)" if summary.ate_rmse_m is None else f"{summary.ate_rmse_m * 100:.2f} cm"
-    click.echo(f"{summary.frames} frames, {summary.keyframes} keyframes, {summary.fps:.2f} fps, "
-               f"ATE RMSE {ate}; outputs in {job_dir}")  # fmt: skip
-    if not no_export:
-        _default_export(ctx, job_dir)
+    # from the run's start to the export's end a stop signal is noted, never the default death:
+    # the run checkpoints on it, and one that comes after the run stops the export at its start
+    with stop_requests():
+        with progress_bar("SLAM", total, _show_progress(ctx)) as advance:
+            summary = run_job(store, job_dir, cfg, max_frames=max_frames, force=force,
+                              on_frame=on_frame)  # fmt: skip
+        ate = "n/a (no GT)" if summary.ate_rmse_m is None else f"{summary.ate_rmse_m * 100:.2f} cm"
+        click.echo(f"{summary.frames} frames, {summary.keyframes} keyframes, "
+                   f"{summary.fps:.2f} fps, ATE RMSE {ate}; outputs in {job_dir}")  # fmt: skip
+        if not no_export:
+            _default_export(ctx, job_dir)
 
 
 def _default_export(ctx: click.Context, job_dir: Path) -> None:
-    """The end-of-run export, unless a complete one is newer than the run's summary."""
+    """The end-of-run export, unless a complete one is newer than the run's summary; a stop
+    signal noted since the run ended stops it at its start (exit 75: running the job again
+    exports)."""
     from bgs_batch.errors import Interrupted
     from jobs.preemption import ExportStopped
     from outputs.export import RUN_DEFAULTS, export_is_current

@@ -384,8 +384,8 @@ ANGLE_DEG = Range(0, 180, low_open=True)
 RANGES: dict[str, Range] = {
     "seed": Range(0, 2**32 - 1),
     "threads": Range(1, 512),
-    "crop_edge": NON_NEGATIVE,  # and less than half the image (`check_crop`, per store)
-    "max_depth": POSITIVE,
+    "crop_edge": NON_NEGATIVE,  # and leaving the coarsest level a pixel (`check_crop`, per store)
+    "max_depth": Range(0.1, 1000),  # m: no depth camera reads nearer than 0.1 m
     "depth_time_lag": Range(-1, 1),  # s; either sensor may lag the other
     "rolling_shutter_readout": Range(0, 1),  # s
     "checkpoint_every": COUNT,
@@ -589,6 +589,19 @@ def load_config(preset: str = DEFAULT_PRESET, overrides: list[str] | None = None
     return config
 
 
+def override_notes(config: Config, overrides: list[str]) -> list[str]:
+    """What a user who set these keys should know: settings the rest of the config makes
+    inert, in part or whole (printed by `bgs run`)."""
+    keys = {item.partition("=")[0].strip() for item in overrides}
+    notes = []
+    t = config.tracking
+    if "tracking.iterations" in keys and t.warm_start and t.warm_iterations:
+        notes.append(f"tracking.iterations={t.iterations} applies only to frames whose warm start "
+                     "is not trusted (usually few); the others are refined with "
+                     f"tracking.warm_iterations={t.warm_iterations}")  # fmt: skip
+    return notes
+
+
 def check(config: Config) -> None:
     """Refuse values a run cannot start from, naming the key, the value and what is allowed:
     every numeric setting against `RANGES`, then combinations."""
@@ -602,6 +615,13 @@ def check(config: Config) -> None:
     if u.sensor_initial and u.sensor_initial <= u.sensor_min:
         raise ConfigError(f"uncertainty.sensor_initial={u.sensor_initial} must exceed "
                           f"uncertainty.sensor_min={u.sensor_min} (or be 0 for the default init)")
+    lc = config.loop_closure
+    if lc.enabled and lc.descriptor == "netvlad":
+        raise ConfigError(
+            "loop_closure.descriptor=netvlad is not supported yet (NetVLAD inference is not "
+            f"implemented; weights file: {lc.netvlad_weights or 'none given'}); use "
+            "loop_closure.descriptor=orb, which needs no weights"
+        )
     sm = config.smoothing
     if sm.log_ratio_max < sm.log_ratio_min:
         raise ConfigError(f"smoothing.log_ratio_max={sm.log_ratio_max} is below "
@@ -630,11 +650,26 @@ class StoreFacts(typing.Protocol):
     rolling_shutter_readout: float
 
 
-def check_crop(crop_edge: int, width: int, height: int) -> None:
-    """Refuse a crop that leaves nothing of a `width` × `height` image."""
-    if 2 * crop_edge >= min(width, height):
-        raise ConfigError(f"crop_edge={crop_edge} leaves nothing of the {width}x{height} images; "
-                          f"use --set crop_edge=N with N < {min(width, height) // 2}")
+def coarsest_factor(config: Config) -> int:
+    """The largest downscale a run applies to its (cropped) input: the sensor network's input,
+    tracking's coarsest pyramid level, the global stage's resolution."""
+    m, t = config.mapping, config.tracking
+    return max(m.downscale * config.uncertainty.sensor_downscale,
+               t.downscale * 2**t.coarse_levels, config.global_map.downscale)  # fmt: skip
+
+
+def check_crop(config: Config, width: int, height: int) -> None:
+    """Refuse a crop (``crop_edge``, resolved) that leaves a `width` × `height` image less than
+    one pixel a side at the coarsest level the run computes on (`coarsest_factor`)."""
+    crop, factor = config.crop_edge or 0, coarsest_factor(config)
+    side = min(width, height) - 2 * crop
+    if side < factor:
+        left = f"{width - 2 * crop}x{height - 2 * crop}" if side > 0 else "nothing"
+        raise ConfigError(
+            f"crop_edge={crop} leaves {left} of the {width}x{height} images, less than the "
+            f"{factor} px a side the run's coarsest level (input / {factor}) needs; use --set "
+            f"crop_edge=N with N <= {max(0, (min(width, height) - factor) // 2)}"
+        )
 
 
 def config_from_dict(data: dict[str, Any]) -> Config:

@@ -7,8 +7,10 @@ Exit codes (documented in README):
 - 2 usage error (bad command line; Click's convention)
 - 3 invalid input data (missing, unreadable or inconsistent files)
 - 4 output already exists (pass ``--overwrite`` to replace it)
-- 5 job directory in use by another process, or made for another store or settings
-- 6 the file system refused: disk full, read-only, permission denied (the path is named;
+- 5 job directory in use by another process, or made for another store or settings; an output
+  another bgs process is writing
+- 6 the file system refused: disk full, read-only, permission denied, a name too long, a
+  symlink loop, a folder where a file belongs (the path is named;
   nothing half-written is kept, and the same command continues once it is fixed)
 - 75 a job stopped by SIGTERM/SIGUSR1/SIGINT after checkpointing (run it again to continue)
 - 128 + N interrupted by signal N (130 for Ctrl-C, 143 for SIGTERM); nothing half-written is left
@@ -38,6 +40,12 @@ class OutputExistsError(BgsError):
     exit_code = 4
 
 
+class InUseError(BgsError):
+    """Another process is writing the same output."""
+
+    exit_code = 5
+
+
 class FileSystemError(BgsError):
     """A file could not be written or read because of the file system, not the data."""
 
@@ -55,6 +63,11 @@ FILE_SYSTEM_ERRNOS = {  # errno: (what failed, what to do)
                             "folder"),
     errno.EIO: ("access", "the disk reported an I/O error: check it, then run the same command "
                           "again"),
+    errno.ENAMETOOLONG: ("create", "the name is longer than the file system allows: choose a "
+                                   "shorter one"),
+    errno.ELOOP: ("resolve", "symbolic links there form a loop: remove the loop"),
+    errno.EISDIR: ("write", "a folder stands where a file belongs: remove or rename it"),
+    errno.ENOTDIR: ("access", "a part of the path is a file, not a folder: fix the path"),
 }  # fmt: skip
 
 

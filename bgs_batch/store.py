@@ -37,7 +37,7 @@ import numpy as np
 from isal import isal_zlib
 
 from bgs_batch import __version__
-from bgs_batch.atomic import commit
+from bgs_batch.atomic import commit, fitted_name
 from bgs_batch.errors import InputError, OutputExistsError
 
 SCHEMA_VERSION = 1
@@ -164,8 +164,9 @@ def encode_frame(
 
 
 def temp_path(path: Path) -> Path:
-    """Where a store is built before the final rename (docs/store-format.md: ``NAME.h5.tmp``)."""
-    return path.with_name(path.name + TMP_SUFFIX)
+    """Where a store is built before the final rename (docs/store-format.md: ``NAME.h5.tmp``;
+    a name too long for ``.tmp`` loses its last characters first)."""
+    return path.with_name(fitted_name(path.name, TMP_SUFFIX))
 
 
 def check_output_path(path: Path, overwrite: bool) -> None:
@@ -299,6 +300,11 @@ def validate(f: h5py.File, path: Path | str) -> None:
     if missing:
         problems.append(f"missing attributes: {', '.join(missing)}")
     version = f.attrs.get("schema_version")
+    if version is not None and int(version) > SCHEMA_VERSION:  # made by a newer bgs-batch
+        raise InputError(f"{path} is a frame store of schema v{int(version)}, written by "
+                         f"{f.attrs.get('created_by', 'a newer bgs-batch')}; this bgs-batch "
+                         f"({__version__}) reads schema v{SCHEMA_VERSION}: open it with the "
+                         "version that wrote it, or newer")  # fmt: skip
     if version is not None and int(version) != SCHEMA_VERSION:
         problems.append(f"schema_version is {version}, this bgs-batch reads {SCHEMA_VERSION}")
     for name in ("rgb", "depth", "timestamp", "intrinsics"):
@@ -370,11 +376,10 @@ def _are_rigid(poses: np.ndarray, tol: float = 1e-6) -> bool:
 
 
 def _invalid(path: Path | str, problems: list[str]) -> str:
-    lines = "\n  - ".join(problems)
-    return (
-        f"{path} is not a valid bgs-batch frame store (schema v{SCHEMA_VERSION}):\n  - {lines}\n"
-        "Re-create it with `bgs convert …` from the original recording."
-    )
+    """One line: the store, every problem found, the fix."""
+    return (f"{path} is not a valid bgs-batch frame store (schema v{SCHEMA_VERSION}): "
+            f"{'; '.join(problems)}; re-create it with `bgs convert …` from the original "
+            "recording")  # fmt: skip
 
 
 class FrameStore:

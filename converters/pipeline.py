@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bgs_batch.atomic import writer_lock
 from bgs_batch.errors import InputError
 from bgs_batch.signals import interruptible
 from bgs_batch.store import (
@@ -33,6 +34,7 @@ from bgs_batch.store import (
     EncodedFrame,
     FrameStoreWriter,
     StoreMeta,
+    check_output_path,
     encode_frame,
     temp_path,
 )
@@ -92,7 +94,8 @@ def write_store(
     the store's provenance when `skip_bad_frames` is set. Ctrl-C / SIGTERM abort cleanly.
     """
     keep_frame_buffers_in_heap()
-    with interruptible() as interruption:
+    check_output_path(Path(out), overwrite)  # before the lock file is made beside it
+    with interruptible() as interruption, writer_lock(Path(out), "bgs convert"):
         try:
             return _write(frames, out, meta, overwrite, skip_bad_frames, workers, level, progress,
                           interruption)  # fmt: skip

@@ -146,7 +146,9 @@ def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _data_lines(path: Path):
-    with open(path, encoding="utf-8", errors="replace") as fh:
+    """(line number, text) of the data lines; "utf-8-sig": a BOM some editors put first is not
+    part of the first line."""
+    with open(path, encoding="utf-8-sig", errors="replace") as fh:
         for number, line in enumerate(fh, 1):
             line = line.strip()
             if line and not line.startswith("#"):

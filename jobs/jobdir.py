@@ -4,19 +4,19 @@
 package version); running again on the same directory with other inputs or settings is refused
 and ``--force`` moves the old run aside whole before starting over, so a job can never mix two
 runs. The lock file holds the owner's host and PID and the owner's flock: a second ``bgs run``
-on the same job refuses with a clear message, and a lock left by a dead process (same host,
-PID gone; or unreadable and not held) is taken over.
+on the same job refuses with a clear message naming them, and a lock no process holds (its
+owner died, whatever PID it names) is taken over.
 """
 
 from __future__ import annotations
 
-import errno
 import fcntl
 import hashlib
 import itertools
 import json
 import os
 import socket
+import stat
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -130,9 +130,10 @@ def set_aside(job_dir: Path) -> Path | None:
     with job_lock(job_dir):
         if not (job_dir / JOB_FILE).exists():
             return None  # a new, empty or foreign folder: check_or_write_record decides
-        stem = f"{job_dir.name}.replaced-{time.strftime('%Y%m%dT%H%M%S')}"
-        target = next(job_dir.with_name(name) for name in _numbered(stem)
-                      if not job_dir.with_name(name).exists())  # fmt: skip
+        suffix = f".replaced-{time.strftime('%Y%m%dT%H%M%S')}"
+        names = (job_dir.with_name(atomic.fitted_name(job_dir.name, end))
+                 for end in _numbered(suffix))  # fmt: skip
+        target = next(name for name in names if not name.exists())
         os.rename(job_dir, target)
         job_dir.mkdir()
     (target / LOCK_FILE).unlink(missing_ok=True)
@@ -140,26 +141,19 @@ def set_aside(job_dir: Path) -> Path | None:
 
 
 def _numbered(stem: str) -> Iterator[str]:
-    """`stem`, then `stem-1`, `stem-2`, ...: free names for folders made in the same second."""
+    """`stem`, then `stem-1`, `stem-2`, ...: names for folders made in the same second."""
     yield stem
     for n in itertools.count(1):
         yield f"{stem}-{n}"
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except OSError as err:
-        return err.errno == errno.EPERM  # exists, owned by someone else
-    return True
-
-
-def _parse_owner(data: bytes) -> dict[str, Any] | None:
+def _parse_owner(data: bytes) -> dict[str, Any]:
+    """The host and PID a lock file names ({} when it names none readably)."""
     try:
         owner = json.loads(data)
     except ValueError:
-        return None
-    return owner if isinstance(owner, dict) else None
+        return {}
+    return owner if isinstance(owner, dict) else {}
 
 
 def _is_held(fd: int) -> bool:
@@ -174,26 +168,36 @@ def _is_held(fd: int) -> bool:
 
 
 def _live_owner(fd: int) -> dict[str, Any] | None:
-    """The owner named by an open lock file, or None when the lock is stale.
+    """The owner named by an open lock file (possibly {}), or None when the lock is stale.
 
-    A readable lock names a host and PID: on this host the PID must exist, another host's lock
-    is trusted. An empty or garbage lock (not written by a current `bgs`, which writes it whole
-    before linking it into place) is stale when no process holds its flock.
-    """
-    owner = _parse_owner(os.pread(fd, 4096, 0))
-    if owner is None:
-        return {} if _is_held(fd) else None
-    pid = owner.get("pid")
-    if owner.get("host") == socket.gethostname() and isinstance(pid, int) and not _pid_alive(pid):
+    The flock decides, never the PID the file names: a PID outlives its process in the file and
+    is reused after a crash or a requeue, while the kernel drops a flock with its process. A
+    lock no process holds is stale whatever it contains."""
+    return _parse_owner(os.pread(fd, 4096, 0)) if _is_held(fd) else None
+
+
+def _open_lock(path: Path) -> int | None:
+    """A read-only descriptor of the lock file at `path` (None: there is none), or a
+    `JobError` when something else stands there: a directory, a symlink, a loop of them."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
         return None
-    return owner
+    if not stat.S_ISREG(mode):
+        kind = "a directory" if stat.S_ISDIR(mode) else (
+            "a symbolic link" if stat.S_ISLNK(mode) else "not a regular file")  # fmt: skip
+        raise JobError(f"{path} is {kind}, not a bgs lock file; remove it (rm -r {path}) and "
+                       "run the command again")  # fmt: skip
+    try:
+        return os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    except FileNotFoundError:
+        return None  # released meanwhile
 
 
 def lock_owner_alive(job_dir: Path) -> bool:
-    """True while the process holding the job's lock may still be running."""
-    try:
-        fd = os.open(job_dir / LOCK_FILE, os.O_RDONLY)
-    except FileNotFoundError:
+    """True while a process holds the job's lock."""
+    fd = _open_lock(job_dir / LOCK_FILE)
+    if fd is None:
         return False
     try:
         return _live_owner(fd) is not None
@@ -203,10 +207,9 @@ def lock_owner_alive(job_dir: Path) -> bool:
 
 def _reclaim_or_owner(path: Path) -> dict[str, Any] | None:
     """Remove a stale lock and return None, or return the live owner of the lock at `path`."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:
-        return None  # released meanwhile
+    fd = _open_lock(path)
+    if fd is None:
+        return None
     try:
         owner = _live_owner(fd)
         if owner is not None:

@@ -48,13 +48,31 @@ class StopRequest:
     requested: int = 0  # the signal number, 0 while none arrived
 
 
+_active: list[StopRequest] = []  # the request of the outermost `stop_requests` block
+
+
 @contextmanager
 def stop_requests() -> Iterator[StopRequest]:
-    """Within the block, stop signals only set ``requested`` (restored afterwards)."""
+    """Within the block, stop signals only set ``requested`` (restored afterwards). Blocks nest:
+    an inner block shares the outer one's request, so `bgs run` notes a signal that arrives
+    between its run and its export, and the run acts on one that came before its first frame."""
+    if _active:
+        yield _active[0]
+        return
     request = StopRequest()
 
     def note(signum: int, _frame: object) -> None:
         request.requested = signum
 
     with signal_handlers(STOP_SIGNALS, note):
-        yield request
+        _active.append(request)
+        try:
+            yield request
+        finally:
+            _active.remove(request)
+
+
+def pending_stop() -> int:
+    """The stop signal an enclosing `stop_requests` block noted (0: none): work that installs
+    its own handlers inside such a block (an export) starts by acting on it."""
+    return _active[0].requested if _active else 0

@@ -105,7 +105,7 @@ def run_job(
     set_threads(cfg.threads)
     with FrameStore(store_path) as store:  # validated before the job directory is taken
         cfg, sources = for_store(cfg, store)
-        check_crop(cfg.crop_edge, store.width, store.height)
+        check_crop(cfg, store.width, store.height)
         job_dir.mkdir(parents=True, exist_ok=True)
         if force and (moved := set_aside(job_dir)) is not None:
             log.warning("--force: moved the previous run of %s to %s", job_dir, moved)

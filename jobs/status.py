@@ -59,8 +59,11 @@ def job_status(job_dir: Path) -> JobStatus:
         fps = json.loads((job_dir / SUMMARY_FILE).read_text())["fps"]
     elif info is not None and info["type"] == Preempted.__name__:
         state = "stopped"  # checkpointed on a signal (exit 75): running it again resumes
-    elif error is not None or frames:
+    elif error is not None:
         state = "failed"
+    elif frames:  # ended without recording an error: killed (SIGKILL, power, OOM killer)
+        state = "stopped"
+        error = "ended without an error (killed?); running it again resumes"
     else:
         state = "new"
     return JobStatus(str(job_dir), state, frames, fps, keyframes, error)

@@ -33,11 +33,11 @@ from typing import Any
 import numpy as np
 
 from bgs_batch.atomic import atomic_dir, atomic_file, remove_temporaries
-from bgs_batch.errors import InputError
+from bgs_batch.errors import InputError, Interrupted
 from bgs_batch.signals import interruptible
 from bgs_batch.store import FrameStore
 from jobs.jobdir import job_lock
-from jobs.preemption import STOP_SIGNALS
+from jobs.preemption import STOP_SIGNALS, pending_stop
 from outputs import plots
 from outputs.colormap import write_png
 from outputs.evaluate import (
@@ -223,6 +223,8 @@ def export_job(job_dir: Path, options: ExportOptions = ExportOptions(),
         lpips = load_lpips(list(options.lpips_weights))
     report = ExportReport()
     with job_lock(job.job_dir), interruptible(STOP_SIGNALS) as interruption, ExitStack() as stack:
+        if signum := pending_stop():  # came before these handlers (e.g. as `bgs run` ended)
+            raise Interrupted(signum)
         remove_temporaries(job.outputs)  # of an export killed before it could clean up
 
         def step(frames: int) -> None:  # a signal swallowed by a destructor still stops here

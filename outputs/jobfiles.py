@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, replace
-from functools import cached_property
+from functools import cache, cached_property
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +20,7 @@ from bgs_batch.errors import InputError
 from bgs_batch.slam.gaussian_map import PARAMS
 from bgs_batch.slam.loop_closure.correction import CORRECTION_KEY
 from bgs_batch.store import FrameStore
-from jobs.jobdir import JOB_FILE, lock_owner_alive
+from jobs.jobdir import JOB_FILE, JobError, lock_owner_alive, store_entry
 from jobs.run import GLOBAL_MAP_FILE, LOG_FILE, SENSOR_FILE, SUBMAP_DIR, SUMMARY_FILE
 from outputs.trajectory import match_timestamps, read_tum
 
@@ -227,16 +227,39 @@ class FinishedJob:
             raise incomplete(self.job_dir, f"{SENSOR_FILE} is unreadable ({err})") from err
 
     def recorded_store(self) -> Path | None:
-        """The store named in ``job.json`` if that file still exists."""
+        """The store named in ``job.json`` if that file still exists (and is the job's store,
+        `check_store`)."""
         if self.record is None:
             return None
         store = Path(self.record["store"]["path"])
-        return store if store.is_file() else None
+        return self.check_store(store) if store.is_file() else None
+
+    @cache  # noqa: B019 - one per job and store path: hashing a moved store takes seconds
+    def check_store(self, store: Path) -> Path:
+        """`store` if its content is the store the job ran on (the SHA-256 in ``job.json``; a
+        store at its recorded path, size and time is not hashed again), else a `JobError`
+        naming both: outputs rendered against another recording's frames would be wrong
+        without a sign of it. Jobs made before ``job.json`` existed are not checked."""
+        known = None if self.record is None else self.record.get("store")
+        if not isinstance(known, dict) or "sha256" not in known:
+            return store
+        try:
+            entry = store_entry(store, known)
+        except OSError as err:
+            raise InputError(f"cannot read the frame store {store} ({err.strerror})") from err
+        if entry["sha256"] != known["sha256"]:
+            raise JobError(
+                f"{store} is not the frame store {self.job_dir} ran on: its SHA-256 "
+                f"{entry['sha256'][:12]}… differs from {known['sha256'][:12]}… recorded in "
+                f"{JOB_FILE} (from {known.get('path')}); pass the job's own store with --store"
+            )
+        return store
 
     def store_path(self) -> Path:
-        """The frame store to read images from: ``--store``, else the one in job.json."""
+        """The frame store to read images from: ``--store``, else the one in job.json; either
+        must be the store the job ran on (`check_store`)."""
         if self.explicit_store is not None:
-            return self.explicit_store
+            return self.check_store(self.explicit_store)
         store = self.recorded_store()
         if store is None:
             named = self.record["store"]["path"] if self.record else f"no {JOB_FILE}"
@@ -263,7 +286,8 @@ class FinishedJob:
 
         From ``--store`` (an error if it has no GT), else from the recorded store when it is
         still there; None without GT."""
-        store = self.explicit_store or self.recorded_store()
+        store = (self.recorded_store() if self.explicit_store is None
+                 else self.check_store(self.explicit_store))  # fmt: skip
         if store is None:
             return None
         with FrameStore(store) as opened:

@@ -1,5 +1,7 @@
-"""The hostile user's probes (issue P13): each one a clear one-line error with its documented exit
-code, or a correct recovery; never a spliced run, a traceback or damaged input stored as data.
+"""The hostile user's probes (issues P13 and P16): each one a clear one-line error with its
+documented exit code, or a correct recovery; never a spliced run, a traceback or damaged input
+stored as data. (P16's first probe, a cold against a warm kernel cache, is
+`tests/test_kernel_cache.py`.)
 
 The probes of truncated JPEGs and of nonsense settings are replayed where their code is tested:
 `tests/converters/test_tum.py::test_a_truncated_jpeg_is_refused_not_stored_grey` (also the bag
@@ -14,6 +16,9 @@ import json
 import os
 import signal
 import subprocess
+import sys
+import time
+from pathlib import Path
 
 import h5py
 import pytest
@@ -360,3 +365,200 @@ def test_a_job_stopped_by_a_signal_shows_as_stopped_resumable(tmp_path):
     assert stopped.value.exit_code == 75
     assert json.loads(bgs("status", job, "--json").output)[0]["state"] == "stopped"
     assert "stopped (resumable)" in bgs("status", job).output
+
+
+# ================================================================ round two (issue P16) =========
+# 1. outputs cannot mix stores ------------------------------------------------------------------
+
+
+def test_export_or_eval_with_another_recording_s_store_is_refused_naming_both(tmp_path):
+    source, other = store(tmp_path, 0), store(tmp_path, 1)
+    job = tmp_path / "job"
+    run_job(source, job, load_config("cpu", TINY))
+    for command in (("export", job, "--trajectory"), ("eval", job, "--no-report")):
+        result = bgs(*command, "--store", other)
+        one_line_error(result, 5, str(other), "is not the frame store", "job.json")
+    assert not (job / "outputs").exists()
+    moved = tmp_path / "moved" / "s0.h5"  # the job's own store, moved: still its store
+    moved.parent.mkdir()
+    source.rename(moved)
+    assert bgs("export", job, "--trajectory", "--store", moved).exit_code == 0
+
+
+# 2. a JPEG corrupted in its middle is damage ---------------------------------------------------
+
+
+def test_a_jpeg_corrupted_in_its_middle_is_refused_or_skipped_never_stored(tmp_path):
+    import cv2
+
+    folder = make_tum_folder(tmp_path / "src", frames=6)
+    victims = sorted((folder / "rgb").iterdir())
+    for victim in victims:  # JPEG colour images (the content decides, not the name)
+        victim.write_bytes(cv2.imencode(".jpg", cv2.imread(str(victim)))[1].tobytes())
+    data = victims[3].read_bytes()
+    middle = len(data) // 2  # marker-like bytes in the entropy-coded data, end marker intact
+    victims[3].write_bytes(data[:middle] + b"\xff\xd0" * 8 + data[middle + 16:])
+    result = bgs("convert", "tum", folder, "-o", tmp_path / "s.h5")
+    one_line_error(result, 3, victims[3].name, "corrupt JPEG", "Corrupt JPEG data")
+    assert list(tmp_path.glob("s.h5*")) == []
+    assert bgs("convert", "tum", folder, "-o", tmp_path / "s.h5", "--skip-bad-frames"
+               ).exit_code == 0  # fmt: skip
+    with h5py.File(tmp_path / "s.h5") as f:
+        assert f["rgb"].shape[0] == 5 and "corrupt JPEG" in f.attrs["provenance"]
+
+
+# 3. and 4. locks decided by flock; a lock that is not a file ------------------------------------
+
+
+def test_a_lock_naming_a_live_pid_that_holds_nothing_is_stale(tmp_path):
+    source = store(tmp_path)
+    job = tmp_path / "job"
+    run_job(source, job, load_config("cpu", TINY))
+    (job / LOCK_FILE).write_text(json.dumps({"host": os.uname().nodename, "pid": 1}))
+    assert json.loads(bgs("status", job, "--json").output)[0]["state"] == "done"
+    assert bgs("run", source, "--job-dir", job, *SETS, "--no-export").exit_code == 0
+    assert bgs("export", job, "--trajectory").exit_code == 0
+    assert not (job / LOCK_FILE).exists()
+
+
+@pytest.mark.parametrize("kind", ["directory", "symlink loop"])
+def test_a_lock_that_is_not_a_file_is_one_line_naming_what_to_remove(tmp_path, kind):
+    source = store(tmp_path)
+    job = tmp_path / "job"
+    run_job(source, job, load_config("cpu", TINY))
+    lock = job / LOCK_FILE
+    if kind == "directory":
+        lock.mkdir()
+    else:
+        (job / "other").symlink_to(lock)
+        lock.symlink_to(job / "other")
+    for command in (("run", source, "--job-dir", job, *SETS), ("status", job),
+                    ("export", job, "--trajectory")):  # fmt: skip
+        one_line_error(bgs(*command), 5, str(lock), "not a bgs lock file", "rm -r")
+
+
+# 5. two converts to one output -----------------------------------------------------------------
+
+
+def test_a_second_convert_to_the_same_output_exits_5_and_the_first_finishes(tmp_path):
+    folder = make_tum_folder(tmp_path / "src", frames=40)
+    out = tmp_path / "s.h5"
+    bgs_bin = str(Path(sys.executable).with_name("bgs"))
+    first = subprocess.Popen([bgs_bin, "-q", "convert", "tum", str(folder), "-o", str(out)],
+                             stderr=subprocess.PIPE, text=True)  # fmt: skip
+    lock = tmp_path / ".lock-s.h5"
+    deadline = time.monotonic() + 60
+    while not lock.exists() and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    second = bgs("convert", "tum", folder, "-o", out)
+    assert first.wait(timeout=120) == 0, first.stderr.read()
+    one_line_error(second, 5, str(out), "being written by another bgs convert",
+                   f"process {first.pid}")  # fmt: skip
+    with h5py.File(out) as f:
+        assert f["rgb"].shape[0] == 40
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.h5", "src"]
+
+
+# 6. names the file system cannot hold ------------------------------------------------------------
+
+
+def test_long_names_convert_or_fail_with_exit_6_naming_the_path(tmp_path):
+    folder = make_tum_folder(tmp_path / "src", frames=4)
+    legal = tmp_path / ("n" * 247 + ".h5")  # 250 bytes: legal, its ".tmp" name would not be
+    assert bgs("convert", "tum", folder, "-o", legal).exit_code == 0 and legal.is_file()
+    job = tmp_path / ("j" * 300)
+    one_line_error(bgs("run", legal, "--job-dir", job, *SETS), 6, "jjj", "longer than the file")
+    job = tmp_path / ("j" * 250)
+    assert bgs("run", legal, "--job-dir", job, *SETS, "--no-export").exit_code == 0
+    assert bgs("run", legal, "--job-dir", job, *SETS, "--no-export", "--force").exit_code == 0
+    [moved] = tmp_path.glob("jjj*.replaced-*")
+    assert len(moved.name) <= 255 and (moved / JOB_FILE).is_file()
+
+
+# 7. and 8. every setting checked before the job directory exists ---------------------------------
+
+
+@pytest.mark.parametrize("setting, needle", [
+    ("loop_closure.descriptor=netvlad", "not supported yet"),
+    ("crop_edge=58", "less than the 8 px a side"),
+    ("max_depth=1e-300", "out of range"),
+])  # fmt: skip
+def test_a_setting_refused_leaves_no_job_directory(tmp_path, setting, needle):
+    folder = make_tum_folder(tmp_path / "src", frames=3, size=(160, 120))
+    source = convert_tum(folder, tmp_path / "s.h5")
+    job = tmp_path / "job"
+    one_line_error(bgs("run", source, "--job-dir", job, "--set", setting), 2, needle)
+    assert not job.exists()
+    assert bgs("run", source, "--job-dir", job, *SETS, "--no-export").exit_code == 0
+
+
+# 9. a signal between the run and its export ------------------------------------------------------
+
+
+def test_a_signal_between_the_run_and_its_export_exits_75_and_the_rerun_exports(tmp_path,
+                                                                               monkeypatch):
+    import outputs.export
+
+    source = store(tmp_path)
+    job = tmp_path / "job"
+    real = outputs.export.export_is_current
+
+    def signal_first(job_dir):  # the first thing the export step does
+        os.kill(os.getpid(), signal.SIGTERM)
+        return real(job_dir)
+
+    monkeypatch.setattr(outputs.export, "export_is_current", signal_first)
+    one_line_error(bgs("run", source, "--job-dir", job, *SETS), 75, "SIGTERM", "finishes it")
+    monkeypatch.undo()
+    assert (job / "summary.json").is_file() and not (job / "outputs").exists()
+    finished = bgs("run", source, "--job-dir", job, *SETS)
+    assert finished.exit_code == 0 and (job / "outputs/report.html").is_file()
+
+
+# 10. the smaller items ----------------------------------------------------------------------------
+
+
+def test_a_job_killed_by_sigkill_shows_as_stopped_not_failed(tmp_path):
+    source = store(tmp_path)
+    job = tmp_path / "job"
+    with pytest.raises(KeyboardInterrupt):
+        run_job(source, job, load_config("cpu", TINY), on_frame=stop_at(3))
+    (job / "error.json").unlink()  # as SIGKILL leaves it: no error recorded
+    status = json.loads(bgs("status", job, "--json").output)[0]
+    assert status["state"] == "stopped" and "resumes" in status["last_error"]
+
+
+def test_a_bom_before_the_first_line_of_a_tum_list_is_not_data(tmp_path):
+    folder = make_tum_folder(tmp_path / "src", frames=3)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        text = (folder / name).read_text()
+        (folder / name).write_text("\ufeff" + text.split("\n", 3)[3])  # no header, a BOM first
+    assert bgs("convert", "tum", folder, "-o", tmp_path / "s.h5").exit_code == 0
+    with h5py.File(tmp_path / "s.h5") as f:
+        assert f["rgb"].shape[0] == 3
+
+
+def test_a_store_of_a_newer_schema_names_the_version_that_reads_it(tmp_path):
+    source = store(tmp_path)
+    with h5py.File(source, "r+") as f:
+        f.attrs["schema_version"] = 7
+        f.attrs["created_by"] = "bgs-batch 9.0.0"
+    one_line_error(bgs("inspect", source), 3, "schema v7", "bgs-batch 9.0.0", "reads schema v1")
+
+
+def test_a_damaged_store_is_one_line_listing_every_problem(tmp_path):
+    source = store(tmp_path)
+    with h5py.File(source, "r+") as f:
+        del f["intrinsics"]
+        del f.attrs["depth_scale"]
+    one_line_error(bgs("inspect", source), 3, "missing attributes: depth_scale",
+                   "missing dataset /intrinsics", "re-create it")  # fmt: skip
+
+
+def test_setting_tracking_iterations_under_the_warm_start_says_what_it_does(tmp_path):
+    source = store(tmp_path)
+    result = CliRunner().invoke(main, ["-q", "run", str(source), "--job-dir", str(tmp_path / "j"),
+                                       "--max-frames", "2", "--no-export", "--set",
+                                       "tracking.iterations=5"])  # fmt: skip
+    assert result.exit_code == 0
+    assert "Note: tracking.iterations=5 applies only to frames whose warm start" in result.output

@@ -151,7 +151,6 @@ def test_existing_output_refused_unless_overwrite(tmp_path):
     ("damage", "message"),
     [
         (lambda f: f.attrs.__delitem__("depth_scale"), "missing attributes: depth_scale"),
-        (lambda f: f.attrs.__setitem__("schema_version", 2), "schema_version is 2"),
         (lambda f: f["timestamp"].__setitem__(1, 0.0), "not strictly increasing"),
         (lambda f: f["pose_gt"].__setitem__((0, 0, 0), 3.0), "not rigid"),
         (lambda f: f.__delitem__("intrinsics"), "missing dataset /intrinsics"),

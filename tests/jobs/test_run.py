@@ -1,6 +1,7 @@
 """Job directories: identity (job.json), refusal of changed inputs, and the lock."""
 
 import errno
+import fcntl
 import json
 import os
 import signal
@@ -91,10 +92,15 @@ def test_stale_lock_of_a_dead_process_is_taken_over(tmp_path):
                                                   "pid": dead.pid}))  # fmt: skip
     with job_lock(tmp_path):
         assert json.loads((tmp_path / LOCK_FILE).read_text())["pid"] == os.getpid()
-    foreign = {"host": "elsewhere", "pid": dead.pid}  # another host's lock is never stale here
-    (tmp_path / LOCK_FILE).write_text(json.dumps(foreign))
-    with pytest.raises(JobError, match="elsewhere"), job_lock(tmp_path):
+    # another host's lock is decided by its flock too (NFS carries flocks between hosts)
+    (tmp_path / LOCK_FILE).write_text(json.dumps({"host": "elsewhere", "pid": dead.pid}))
+    with job_lock(tmp_path):
         pass
+    (tmp_path / LOCK_FILE).write_text(json.dumps({"host": "elsewhere", "pid": 4242}))
+    with open(tmp_path / LOCK_FILE) as held:  # held there: in use, named as the file says
+        fcntl.flock(held, fcntl.LOCK_EX)
+        with pytest.raises(JobError, match="process 4242 on elsewhere"), job_lock(tmp_path):
+            pass
 
 
 def test_status_reports_done_failed_running_and_bad_dirs(tmp_path):

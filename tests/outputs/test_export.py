@@ -1,5 +1,6 @@
 """`bgs export` on a fabricated job directory: files exist and parse; clean input errors."""
 
+import fcntl
 import json
 import os
 import socket
@@ -106,5 +107,8 @@ def test_ground_truth_from_the_recorded_store_and_running_jobs_refused(tmp_path)
     assert (job / "outputs" / "trajectory" / "gt.tum").is_file()
 
     (job / LOCK_FILE).write_text(json.dumps({"host": socket.gethostname(), "pid": os.getpid()}))
-    result = run("export", job)
+    with open(job / LOCK_FILE) as held:  # a running `bgs run` holds its lock's flock
+        fcntl.flock(held, fcntl.LOCK_EX)
+        result = run("export", job)
     assert result.exit_code == 3 and "still being written" in result.output
+    (job / LOCK_FILE).unlink()

@@ -281,8 +281,8 @@ def test_broken_jobs_exit_3_naming_the_file_and_leave_outputs_alone(copy, tmp_pa
     other_folder = synthesize(other / "seq", SynthConfig(frames=3, width=32, height=24, seed=4))
     plan = plan_tum(other_folder, TumOptions())
     wrong = write_store(plan.frames, other / "s.h5", plan.meta).path
-    result = run("eval", job, "--store", wrong)
-    assert result.exit_code == 3 and "does not hold the frames" in result.output
+    result = run("eval", job, "--store", wrong)  # another recording: its content says so
+    assert result.exit_code == 5 and "is not the frame store" in result.output
     result = run("eval", job, "--store", store, "--downscale", "3")
     assert result.exit_code == 3 and "mapping.downscale" in result.output
 

@@ -8,11 +8,11 @@ import open3d as o3d
 import pytest
 import torch
 
-from bgs_batch.config import LoopClosureConfig, load_config
+from bgs_batch.config import ConfigError, LoopClosureConfig, load_config
 from bgs_batch.geometry import quat_xyzw_to_matrix
 from bgs_batch.render import se3_exp
 from bgs_batch.slam.loop_closure import inject_drift, place_recognition, vocabulary
-from bgs_batch.slam.loop_closure.closer import LoopCloser, LoopClosureError
+from bgs_batch.slam.loop_closure.closer import LoopCloser
 from bgs_batch.slam.loop_closure.correction import (
     continuous_poses,
     load_raw,
@@ -306,11 +306,10 @@ def test_icp_fallback_recovers_a_small_misalignment():
 # ----------------------------------------------------------------------- settings and state
 
 
-def test_netvlad_fails_clearly_and_disabled_loop_closure_does_nothing(tmp_path):
-    cfg = load_config("cpu", ["loop_closure.descriptor=netvlad",
-                              f"loop_closure.netvlad_weights={tmp_path / 'w.pth'}"])  # fmt: skip
-    with pytest.raises(LoopClosureError, match="not supported yet") as err:
-        LoopCloser(cfg)
+def test_netvlad_is_refused_with_the_settings_and_disabled_loop_closure_does_nothing(tmp_path):
+    with pytest.raises(ConfigError, match="not supported yet") as err:
+        load_config("cpu", ["loop_closure.descriptor=netvlad",
+                            f"loop_closure.netvlad_weights={tmp_path / 'w.pth'}"])  # fmt: skip
     assert err.value.exit_code == 2 and "w.pth" in str(err.value)
     off = LoopCloser(load_config("cpu", ["loop_closure.enabled=false",
                                          "loop_closure.descriptor=netvlad"]))  # fmt: skip

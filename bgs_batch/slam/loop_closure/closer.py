@@ -20,7 +20,6 @@ import numpy as np
 import torch
 
 from bgs_batch.config import Config
-from bgs_batch.errors import BgsError
 from bgs_batch.slam.frames import Level
 from bgs_batch.slam.loop_closure import place_recognition, vocabulary
 from bgs_batch.slam.loop_closure.correction import camera_shift, load_raw, write_correction
@@ -36,12 +35,6 @@ from bgs_batch.slam.submaps import SubmapRecord
 VOCABULARY_STREAM, RANSAC_STREAM = 1, 2  # independent random streams derived from the seed
 POSE_ROWS = 3  # poses in reports: the top 3×4, row-major (as log.jsonl's "pose")
 UNCHANGED = 1e-12  # a correction that moved less than this is not applied (nothing to rewrite)
-
-
-class LoopClosureError(BgsError):
-    """A loop-closure setting cannot be used."""
-
-    exit_code = 2
 
 
 @dataclass(frozen=True)
@@ -61,13 +54,6 @@ class LoopCloser:
 
     def __init__(self, cfg: Config) -> None:
         self.cfg = cfg
-        lc = cfg.loop_closure
-        if lc.enabled and lc.descriptor == "netvlad":
-            raise LoopClosureError(
-                "loop_closure.descriptor=netvlad is not supported yet (NetVLAD inference is not "
-                f"implemented; weights file: {lc.netvlad_weights or 'none given'}); use "
-                "loop_closure.descriptor=orb, which needs no weights"
-            )
         self.features: list[KeyframeFeatures] = []
         self.vocabulary = np.zeros((0, DESCRIPTOR_BYTES), np.uint8)
         self.trained_on = 0
