@@ -552,12 +552,15 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
         status = f"{sum(keyframes)} keyframes" + (f", loss {loss:.3g}" if loss else "")
         advance(1, status)
 
+    def on_visit(done: int, visits: int) -> None:  # the frames are done: the bar stays full
+        advance(0, f"global map: {done}/{visits} steps")
+
     # from the run's start to the export's end a stop signal is noted, never the default death:
     # the run checkpoints on it, and one that comes after the run stops the export at its start
     with stop_requests():
         with progress_bar("SLAM", total, _show_progress(ctx)) as advance:
             summary = run_job(store, job_dir, cfg, max_frames=max_frames, force=force,
-                              on_frame=on_frame)  # fmt: skip
+                              on_frame=on_frame, on_visit=on_visit)  # fmt: skip
         ate = "n/a (no GT)" if summary.ate_rmse_m is None else f"{summary.ate_rmse_m * 100:.2f} cm"
         click.echo(f"{summary.frames} frames, {summary.keyframes} keyframes, "
                    f"{summary.fps:.2f} fps, ATE RMSE {ate}; outputs in {job_dir}")  # fmt: skip

@@ -93,8 +93,11 @@ def run_job(
     max_frames: int | None = None,
     force: bool = False,
     on_frame: Callable[[dict[str, Any]], None] | None = None,
+    on_visit: Callable[[int, int], None] | None = None,
 ) -> RunSummary:
-    """Run SLAM over the store (or its first `max_frames`) and write the job directory.
+    """Run SLAM over the store (or its first `max_frames`) and write the job directory;
+    `on_frame(event)` after each frame, `on_visit(done, total)` after each visit of the global
+    stage.
 
     Settings the config leaves to the store (``crop_edge``, ``rolling_shutter_readout``: None)
     take the store's value. Refuses
@@ -116,7 +119,7 @@ def run_job(
                 remove_temporaries(job_dir / folder)
             (job_dir / ERROR_FILE).unlink(missing_ok=True)
             try:
-                return _run(store, job_dir, cfg, sources, max_frames, on_frame)
+                return _run(store, job_dir, cfg, sources, max_frames, on_frame, on_visit)
             except BaseException as err:  # recorded for `bgs status`, then re-raised
                 error = {"type": type(err).__name__, "message": str(err)}
                 with suppress(OSError):  # a full disk may refuse this too: keep the cause
@@ -131,6 +134,7 @@ def _run(
     sources: dict[str, str],
     max_frames: int | None,
     on_frame: Callable[[dict[str, Any]], None] | None,
+    on_visit: Callable[[int, int], None] | None,
 ) -> RunSummary:
     if (job_dir / SUMMARY_FILE).exists():  # finished before: nothing to do (array reruns)
         return RunSummary(**json.loads((job_dir / SUMMARY_FILE).read_text()))
@@ -167,7 +171,8 @@ def _run(
             checkpoint(n, stage)  # a resumed job starts here, not with `finish` again
         else:
             stage = GlobalMapStage.from_state_dict(cfg, stage_state, slam.sensor)
-        _optimise_global_map(slam, stage, store, stop, lambda: checkpoint(n, stage), job_dir)
+        _optimise_global_map(slam, stage, store, stop, lambda: checkpoint(n, stage), job_dir,
+                             on_visit)  # fmt: skip
         save_sensor_and_map(job_dir, slam, stage)
         timestamps = store.timestamps[:n]
         gt = store.poses_gt[:n] if store.has_gt else None
@@ -192,13 +197,15 @@ def _run(
 
 
 def _optimise_global_map(slam: Slam, stage: GlobalMapStage, store: FrameStore,
-                         stop: StopRequest, checkpoint: Callable[[], None], job_dir: Path
-                         ) -> None:  # fmt: skip
+                         stop: StopRequest, checkpoint: Callable[[], None], job_dir: Path,
+                         on_visit: Callable[[int, int], None] | None) -> None:  # fmt: skip
     """The global stage's visits, checkpointed every ``global_map.checkpoint_every`` and on a
-    stop signal (then `Preempted`)."""
+    stop signal (then `Preempted`); `on_visit(done, total)` after each."""
     every, total = slam.cfg.global_map.checkpoint_every, len(stage.order)
     with slam.timings.measure("global_map"):
         for visits in stage.run(lambda i: slam.prepare_index(i, store.__getitem__)):
+            if on_visit is not None:
+                on_visit(visits, total)
             if visits % every == 0 or stop.requested:
                 checkpoint()
             if stop.requested and visits < total:

@@ -100,13 +100,14 @@ def runs(tmp_path_factory):
     folder = synthesize(root / "room", SynthConfig(frames=FRAMES, width=SIZE[0],
                                                    height=SIZE[1], seed=11))  # fmt: skip
     store = convert_tum(folder, root / "room.h5")
-    jobs = {}
+    jobs, reported = {}, []
     for passes in (0, 4):
         job = root / f"passes{passes}"
-        run_job(store, job, load_config("cpu", [*SETTINGS, f"global_map.passes={passes}"]))
+        run_job(store, job, load_config("cpu", [*SETTINGS, f"global_map.passes={passes}"]),
+                on_visit=lambda done, total, p=passes: reported.append((p, done, total)))
         export_job(job, ExportOptions(uncertainty=False, renders=False, report=False))
         jobs[passes] = job
-    return store, jobs
+    return store, jobs, reported
 
 
 def metrics(job):
@@ -115,7 +116,7 @@ def metrics(job):
 
 @pytest.mark.slow
 def test_the_stage_renders_frames_it_never_trained_on_better_than_the_merge(runs):
-    _, jobs = runs
+    _, jobs, _ = runs
     merged, optimised = (metrics(jobs[p]) for p in (0, 4))
     assert merged["held_out_frames"] == optimised["held_out_frames"] != []
     before, after = (m["held_out"]["rendering"] for m in (merged, optimised))
@@ -126,7 +127,7 @@ def test_the_stage_renders_frames_it_never_trained_on_better_than_the_merge(runs
 
 @pytest.mark.slow
 def test_held_out_frames_never_enter_the_stage(runs):
-    _, jobs = runs
+    _, jobs, _ = runs
     record = torch.load(jobs[4] / GLOBAL_MAP_FILE, weights_only=True)
     visits = np.array(record["visits_per_frame"])
     held = record["held_out_frames"]
@@ -135,12 +136,15 @@ def test_held_out_frames_never_enter_the_stage(runs):
     assert (visits[held] == 0).all()
     assert (visits[record["training_frames"]] == 4).all()  # 4 passes: each frame 4 times
     assert visits.sum() == record["visits"] == 4 * (FRAMES - len(held))
+    reported = runs[2]  # what `bgs run`'s progress bar shows: every visit, of the right total
+    assert [(done, total) for p, done, total in reported] == [
+        (k, record["visits"]) for k in range(1, record["visits"] + 1)]
 
 
 @pytest.mark.slow
 def test_global_ply_at_the_trajectory_s_poses_is_what_eval_scores(runs):
     """A user's check: read global.ply and trajectory.txt, render the held-out frames."""
-    store, jobs = runs
+    store, jobs, _ = runs
     job = jobs[4]
     export_job(job, ExportOptions(trajectory=False, uncertainty=False, renders=False,
                                   metrics=False, report=False))  # fmt: skip
