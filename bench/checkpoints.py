@@ -82,15 +82,20 @@ def timed_run(store: Path, job: Path, cfg: Config) -> tuple[RunSummary, float, f
     pending: dict[str, Any] = {}
     original_state, original_write = job_run._job_state, job_run.write_checkpoint
 
-    def job_state(slam: Any, seconds: float) -> dict[str, Any]:
+    def job_state(slam: Any, seconds: float, stage: Any = None) -> dict[str, Any]:
         start = time.perf_counter()
-        state = original_state(slam, seconds)
-        pending.update(snapshot_s=time.perf_counter() - start, gaussians=len(slam.gmap))
+        state = original_state(slam, seconds, stage)
+        gaussians = len(slam.gmap) if stage is None else len(stage.gmap)
+        pending.update(snapshot_s=time.perf_counter() - start, gaussians=gaussians)
         return state
 
-    def write(job_dir: Path, frames_done: int, state: dict[str, Any]) -> Path:
+    def write(job_dir: Path, frames_done: int, state: dict[str, Any], end_steps: int = 0
+              ) -> Path:  # fmt: skip
         start = time.perf_counter()
-        path = original_write(job_dir, frames_done, state)
+        path = original_write(job_dir, frames_done, state, end_steps)
+        kept = job_dir.parent / f"{job_dir.name}{ALL_CHECKPOINTS}"  # the job keeps two only
+        kept.mkdir(exist_ok=True)
+        shutil.copy2(path, kept / path.name)
         costs.append(CheckpointCost(frames_done, pending["gaussians"], pending["snapshot_s"],
                                     time.perf_counter() - start, path.stat().st_size))  # fmt: skip
         return path
@@ -105,22 +110,24 @@ def timed_run(store: Path, job: Path, cfg: Config) -> tuple[RunSummary, float, f
     return summary, wall, cpu, costs
 
 
+ALL_CHECKPOINTS = ".all-checkpoints"  # beside a timed job: a copy of every checkpoint written
+
+
 def cut_back_to_checkpoint(source: Path, target: Path, frames: int) -> int:
     """Copy a finished job and undo everything after its newest checkpoint before `frames`,
     as if it had been stopped there; returns that checkpoint's frame count."""
     shutil.copytree(source, target)
-    for name in ("summary.json", "trajectory.txt", "sensor_net.pt"):
+    for name in ("summary.json", "trajectory.txt", "sensor_net.pt", "global_map.pt"):
         (target / name).unlink()
-    kept = []
-    for path in sorted((target / CHECKPOINT_DIR).glob("*.pt")):
-        done = int(path.name.split("-")[0])
-        if done >= frames:
-            path.unlink()
-        else:
-            kept.append(done)
-    if not kept:
+    shutil.rmtree(target / CHECKPOINT_DIR)
+    (target / CHECKPOINT_DIR).mkdir()
+    written = sorted(source.parent.joinpath(f"{source.name}{ALL_CHECKPOINTS}").glob("*.pt"))
+    before = [path for path in written if int(path.name.split("-")[0]) < frames]
+    if not before:
         raise SystemExit(f"no checkpoint before frame {frames}: use --frames >= "
                          f"{2 * DEFAULT_CADENCE}")  # fmt: skip
+    shutil.copy2(before[-1], target / CHECKPOINT_DIR / before[-1].name)
+    kept = [int(before[-1].name.split("-")[0])]
     lines = (target / LOG_FILE).read_text().splitlines(keepends=True)
     (target / LOG_FILE).write_text("".join(lines[: kept[-1]]))
     return kept[-1]
