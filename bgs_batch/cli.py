@@ -386,6 +386,10 @@ def _print_export(report, brief_in: Path | None = None) -> None:  # noqa: ANN001
     for path in [] if brief_in is not None else report.files:
         count = report.gaussians.get(path.name)
         click.echo(f"wrote {path}" + ("" if count is None else f" ({count} Gaussians)"))
+    if report.handoff is not None:
+        h = report.handoff
+        click.echo(f"{h.folder}: {h.images} images, {h.points} points, {h.observations} "
+                   "observations (COLMAP model in sparse/0)")  # fmt: skip
     for alignment, stats in report.ate.items():
         rmse = "n/a (degenerate)" if math.isnan(stats["rmse"]) else f"{stats['rmse'] * 100:.2f} cm"
         click.echo(f"ATE RMSE ({alignment.replace('_', ' ')}): {rmse} "
@@ -417,7 +421,7 @@ def _run_export(ctx: click.Context, job: Path, options, brief: bool = False) -> 
     from outputs.jobfiles import FinishedJob
 
     count = 0
-    if options.uncertainty or options.renders or options.report:
+    if options.uncertainty or options.renders or options.report or options.colmap:
         count = frames_to_render(FinishedJob(job, options.store), options).count
     with progress_bar("rendering", count, _show_progress(ctx) and count > 0) as advance:
         report = export_job(job, options, progress=advance)
@@ -436,38 +440,53 @@ def _run_export(ctx: click.Context, job: Path, options, brief: bool = False) -> 
               help="Write rendered colour (8-bit PNG) and depth (16-bit PNG, 5000 per m).")
 @click.option("--report", is_flag=True,
               help="Evaluate (metrics.json, as `bgs eval`) and write report.html with its plots.")
+@click.option("--colmap", is_flag=True,
+              help="Write colmap/ for the splat trainers: the frames as the run saw them "
+                   "(images/, 16-bit mm depths/) and a COLMAP model (sparse/0: one PINHOLE "
+                   "camera, trajectory.txt's poses, the global map's points with tracks).")
+@click.option("--nerfstudio", is_flag=True,
+              help="Also nerfstudio's transforms.json and sparse_pc.ply in colmap/ (implies "
+                   "--colmap).")
+@click.option("--text", is_flag=True, help="Also the COLMAP model as .txt (implies --colmap).")
 @click.option("--frames", "which", type=click.Choice(["keyframes", "all"]), default="keyframes",
-              show_default=True, help="Frames of the uncertainty images and renders.")
+              show_default=True, help="Frames of the uncertainty images, renders and colmap/.")
 @click.option("--stride", default=1, show_default=True, type=click.IntRange(min=1),
               help="Keep every STRIDE-th of those frames.")
 @_frame_options
 @click.pass_context
 def export(ctx: click.Context, job: Path, ply: bool, trajectory: bool, uncertainty: bool,
-           renders: bool, report: bool, which: str, stride: int, store: Path | None,
-           downscale: int | None, lpips_weights: tuple[Path, ...]) -> None:  # fmt: skip
+           renders: bool, report: bool, colmap: bool, nerfstudio: bool, text: bool, which: str,
+           stride: int, store: Path | None, downscale: int | None,
+           lpips_weights: tuple[Path, ...]) -> None:  # fmt: skip
     """Write a finished job's outputs into JOB/outputs (all of them when no flag is given).
 
     PLY files use the INRIA 3DGS layout (opacity logit, log scales, w-first quaternion, SH DC)
     plus a float `uncertainty` property; trajectories are camera-to-world, TUM and KITTI. The
     aligned estimate is rigidly aligned to GT (rotation + translation, no scale), as
     `evo_ape tum gt.tum estimate.tum -a`. Uncertainty images are re-rendered from the saved
-    submaps, poses and sensor network with the SLAM's own variance formula. Every file is
-    written under a temporary name and renamed when complete.
+    submaps, poses and sensor network with the SLAM's own variance formula. colmap/ is what
+    the 3DGS, gsplat and nerfstudio trainers read (COLMAP's pixel convention: the principal
+    point is the run's plus half a pixel). Every file is written under a temporary name and
+    renamed when complete.
 
     \b
     Example:
       bgs export jobs/fr1_rpy --store fr1_rpy.h5
       bgs export jobs/fr1_rpy --uncertainty --frames all --stride 5
       bgs export jobs/fr1_rpy --ply
+      bgs export jobs/fr1_rpy --colmap --nerfstudio     # then train a splat model on colmap/
     """
     from outputs.export import ExportOptions
 
-    everything = not (ply or trajectory or uncertainty or renders or report)
+    colmap = colmap or nerfstudio or text
+    everything = not (ply or trajectory or uncertainty or renders or report or colmap)
     options = ExportOptions(
         ply=ply or everything, trajectory=trajectory or everything,
         uncertainty=uncertainty or everything, renders=renders or everything,
-        metrics=report or everything, report=report or everything, frames=which,
-        stride=stride, downscale=downscale, lpips_weights=lpips_weights, store=store,
+        metrics=report or everything, report=report or everything,
+        colmap=colmap or everything, nerfstudio=nerfstudio or everything, text=text,
+        frames=which, stride=stride, downscale=downscale, lpips_weights=lpips_weights,
+        store=store,
     )  # fmt: skip
     _run_export(ctx, job, options)
 

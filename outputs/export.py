@@ -7,6 +7,8 @@ Written into ``JOB/outputs/``::
                             frames at the reported poses (`bgs_batch.slam.global_map`)
     trajectory/             estimate.{tum,kitti}, times.txt; with the frame store's ground truth
                             also estimate_aligned.{tum,kitti} and gt.{tum,kitti}
+    colmap/                 the frames, depths, a COLMAP model and nerfstudio's transforms.json
+                            for the splat trainers (`outputs.colmap`; not in `bgs run`'s export)
     uncertainty.h5          per-frame renders, variances, residuals (`outputs.uncertainty_h5`)
     uncertainty/<quantity>/ colour-mapped PNGs with colour bars (`outputs.uncertainty_images`)
     renders/{rgb,depth}/    rendered colour (8-bit) and depth (16-bit PNG, 5000 per m)
@@ -39,6 +41,7 @@ from bgs_batch.store import FrameStore
 from jobs.jobdir import job_lock
 from jobs.preemption import STOP_SIGNALS, pending_stop
 from outputs import plots
+from outputs.colmap import COLMAP_DIR, Handoff, check_folder, export_handoff
 from outputs.colormap import write_png
 from outputs.evaluate import (
     MIN_ALIGNED_FRAMES,
@@ -68,8 +71,9 @@ GLOBAL_PLY = "global.ply"
 
 @dataclass(frozen=True)
 class ExportOptions:
-    """What to write; `frames`/`stride` choose the frames of the uncertainty images and renders
-    ("keyframes" or "all", then every stride-th); metrics always use the keyframes."""
+    """What to write; `frames`/`stride` choose the frames of the uncertainty images, renders and
+    the COLMAP/nerfstudio hand-off ("keyframes" or "all", then every stride-th); metrics always
+    use the keyframes."""
 
     ply: bool = True
     trajectory: bool = True
@@ -77,6 +81,9 @@ class ExportOptions:
     renders: bool = True
     metrics: bool = True  # metrics.json
     report: bool = True  # report.html and report/ (implies metrics)
+    colmap: bool = False  # outputs/colmap: images, depths and a COLMAP model (`outputs.colmap`)
+    nerfstudio: bool = False  # ... and nerfstudio's transforms.json beside them
+    text: bool = False  # the COLMAP model also as .txt
     frames: str = "keyframes"
     stride: int = 1
     downscale: int | None = None  # None: the run's mapping resolution
@@ -86,12 +93,16 @@ class ExportOptions:
     def __post_init__(self) -> None:
         if self.report and not self.metrics:
             raise ValueError("a report needs the metrics")
+        if (self.nerfstudio or self.text) and not self.colmap:
+            raise ValueError("--nerfstudio and --text write into the COLMAP hand-off")
         if self.frames not in ("keyframes", "all") or self.stride < 1:
             raise ValueError(f"frames {self.frames!r}, stride {self.stride}: invalid")
 
 
-# what `bgs run` exports when it ends (no PNG renders: the HDF5 file holds them)
+# what `bgs run` exports when it ends (no PNG renders: the HDF5 file holds them; the hand-off
+# to the trainers on request)
 RUN_DEFAULTS = ExportOptions(renders=False)
+EVERYTHING = ExportOptions(colmap=True, nerfstudio=True)  # `bgs export` without a flag
 
 
 def export_is_current(job_dir: Path) -> bool:
@@ -110,6 +121,7 @@ class ExportReport:
 
     files: list[Path] = field(default_factory=list)
     gaussians: dict[str, int] = field(default_factory=dict)
+    handoff: Handoff | None = None
     ate: dict[str, dict[str, float]] = field(default_factory=dict)
     metrics: dict[str, Any] | None = None
 
@@ -203,8 +215,13 @@ def _check_inputs(job: FinishedJob, options: ExportOptions) -> None:
         if max(e.submap for e in events) >= len(submaps):
             raise incomplete(job.job_dir, f"log.jsonl names submap {max(e.submap for e in events)}"
                              f" but submaps/ holds {len(submaps)} files")  # fmt: skip
-    if options.metrics:
+    if options.metrics or options.colmap:
         _ = job.summary
+    if options.colmap:
+        check_folder(job.outputs / COLMAP_DIR)
+        if not select_frames(job, options.frames, options.stride):
+            raise InputError(f"{job.job_dir} has no {options.frames} to export; choose "
+                             "--frames all")  # fmt: skip
 
 
 def export_job(job_dir: Path, options: ExportOptions = ExportOptions(),
@@ -232,14 +249,20 @@ def export_job(job_dir: Path, options: ExportOptions = ExportOptions(),
             if progress is not None:
                 progress(frames)
 
-        renderer = None
-        if options.uncertainty or options.renders or options.metrics:  # checks store, network
-            store = stack.enter_context(job.open_store())
+        renderer = store = None
+        if options.uncertainty or options.renders or options.metrics or options.colmap:
+            store = stack.enter_context(job.open_store())  # checks store, network
+        if options.uncertainty or options.renders or options.metrics:
             renderer = UncertaintyRenderer(job, store, options.downscale)
         if options.ply:
             export_ply(job, report)
         if options.trajectory:
             export_trajectories(job, report)
+        if options.colmap:
+            frames = frames_to_render(job, options).handoff
+            handoff = export_handoff(job, store, frames, options.text, options.nerfstudio, step)
+            report.files.append(handoff.folder)
+            report.handoff = handoff
         if renderer is not None:
             _export_frames(job, renderer, options, report, lpips, step)
     return report
@@ -253,22 +276,25 @@ class RenderPlan:
     images: list[int]
     metrics: list[int]
     global_map: list[int]  # the held-out frames and the keyframes
+    handoff: list[int]  # the frames of outputs/colmap
 
     @property
     def count(self) -> int:
-        """Renders in all (a frame of both the images and the metrics is rendered once)."""
-        return len(set(self.images) | set(self.metrics)) + len(self.global_map)
+        """Frames in all (a frame of both the images and the metrics is rendered once)."""
+        return (len(set(self.images) | set(self.metrics)) + len(self.global_map)
+                + len(self.handoff))  # fmt: skip
 
 
 def frames_to_render(job: FinishedJob, options: ExportOptions) -> RenderPlan:
     """Which frames the export renders (`RenderPlan`)."""
-    images = []
-    if options.uncertainty or options.renders:
-        images = select_frames(job, options.frames, options.stride)
+    chosen = select_frames(job, options.frames, options.stride)
+    images = chosen if options.uncertainty or options.renders else []
+    handoff = chosen if options.colmap else []
     if not options.metrics:
-        return RenderPlan(images, [], [])
+        return RenderPlan(images, [], [], handoff)
     keyframes = select_frames(job, "keyframes")
-    return RenderPlan(images, keyframes, sorted({*job.global_map.held_out_frames, *keyframes}))
+    return RenderPlan(images, keyframes, sorted({*job.global_map.held_out_frames, *keyframes}),
+                      handoff)  # fmt: skip
 
 
 class _FrameSinks:
