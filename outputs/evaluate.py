@@ -52,8 +52,9 @@ CONVENTIONS = {
     "to the frame's instant where the run did): 'held_out' are the frames the global stage "
     "held back from every optimisation (every global_map.hold_out_every-th frame that is not a "
     "keyframe; no keyframe is ever held out), 'keyframes' the frames the SLAM mapped (the "
-    "stage trained on them). Metrics as for 'rendering'; Σ from the global map's refitted "
-    "opacity variances and the run's sensor network.",
+    "stage trained on them). Metrics as for 'rendering' but MS-SSIM; AUSE on the held-out "
+    "frames only, with Σ from the global map's refitted opacity variances and the run's "
+    "sensor network.",
     "psnr": "10 log10(1/MSE) over all pixels and channels, colour in [0,1], rendered colour "
     "clamped to [0,1]; mean over frames (dB).",
     "ssim": "3DGS Gaussian-window SSIM (11x11, sigma 1.5); mean over frames.",
@@ -115,6 +116,10 @@ class FrameEvaluator:
     """Accumulates per-frame metrics of the evaluated frames (see `CONVENTIONS`)."""
 
     lpips: Lpips | None = None
+    # the global map's blocks leave out MS-SSIM (its five blurs of a frame at input resolution
+    # took a third of an export's time), and its keyframes the AUSE (held-out frames keep it)
+    with_ms_ssim: bool = True
+    with_uncertainty: bool = True
     rows: list[dict[str, Any]] = field(default_factory=list)
     colour: list[Sparsification] = field(default_factory=list)
     depth: dict[str, list[Sparsification]] = field(
@@ -127,11 +132,11 @@ class FrameEvaluator:
         row["psnr_db"] = _finite(psnr(rendered, target))
         row["ssim"] = ssim_index(rendered, target)
         small = min(rendered.shape[:2]) <= MS_SSIM_MIN_SIDE
-        row["ms_ssim"] = None if small else ms_ssim(rendered, target)
+        row["ms_ssim"] = None if small or not self.with_ms_ssim else ms_ssim(rendered, target)
         l1 = depth_l1(torch.from_numpy(item.rendered_depth), torch.from_numpy(item.measured_depth))
         row["depth_l1_cm"] = _finite(l1 * CM_PER_M)
         row["lpips"] = None if self.lpips is None else lpips_distance(self.lpips, rendered, target)
-        if item.valid.any():
+        if self.with_uncertainty and item.valid.any():
             colour = colour_sparsification(
                 item.rendered_rgb, item.measured_rgb, item.var_color[..., None], item.measured_depth
             )
@@ -157,7 +162,8 @@ class FrameEvaluator:
             "ssim": mean("ssim"),
             "ms_ssim": mean("ms_ssim"),
             "ms_ssim_note": None if mean("ms_ssim") is not None else
-            f"images not larger than {MS_SSIM_MIN_SIDE} px on each side",
+            f"images not larger than {MS_SSIM_MIN_SIDE} px on each side" if self.with_ms_ssim
+            else "not computed for the global map",
             "depth_l1_cm": mean("depth_l1_cm"),
             "lpips": mean("lpips"),
             "lpips_net": None if self.lpips is None else self.lpips.net,

@@ -389,7 +389,9 @@ def _evaluate_global_map(job: FinishedJob, store: FrameStore, frames: list[int],
     held-out frames and on the keyframes; a gallery of held-out views for the report."""
     renderer = UncertaintyRenderer(job, store, 1, global_map=True)
     held_out = set(job.global_map.held_out_frames)
-    evaluation = GlobalMapEvaluation(FrameEvaluator(lpips), FrameEvaluator(lpips))
+    evaluation = GlobalMapEvaluation(
+        FrameEvaluator(lpips, with_ms_ssim=False),
+        FrameEvaluator(lpips, with_ms_ssim=False, with_uncertainty=False))
     gallery = _gallery_frames(sorted(held_out)) if sinks.report is not None else set()
     for index in frames:
         item = renderer.frame(index)
