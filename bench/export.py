@@ -40,7 +40,7 @@ MB = 2**20
 NOTHING = ExportOptions(ply=False, trajectory=False, uncertainty=False, renders=False,
                         metrics=False, report=False)  # fmt: skip
 PARTS = {
-    "PLY (submaps + merged)": dataclasses.replace(NOTHING, ply=True),
+    "PLY (submaps + global map)": dataclasses.replace(NOTHING, ply=True),
     "trajectories (TUM, KITTI, aligned)": dataclasses.replace(NOTHING, trajectory=True),
     "uncertainty images (HDF5 + PNGs)": dataclasses.replace(NOTHING, uncertainty=True),
     "metrics + report": dataclasses.replace(NOTHING, metrics=True, report=True),
