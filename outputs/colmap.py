@@ -26,12 +26,13 @@ sees are left out.
 from __future__ import annotations
 
 import json
+import signal
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 import torch
 
 from bgs_batch.atomic import atomic_dir
@@ -39,8 +40,26 @@ from bgs_batch.errors import OutputExistsError
 from bgs_batch.render import Camera
 from bgs_batch.slam.frames import Level, prepare_frame
 from bgs_batch.store import FrameStore
+from jobs.preemption import STOP_SIGNALS
 from outputs.colormap import rgb_to_bgr8, write_png
 from outputs.jobfiles import FinishedJob
+
+
+def _import_pycolmap():  # noqa: ANN202 - a module
+    """pycolmap, without the crash handler its glog installs on import for SIGTERM: it would
+    replace Python's, so a job stopped by Slurm during an export would die with a stack dump
+    instead of stopping cleanly (exit 75)."""
+    handlers = {s: signal.getsignal(s) for s in STOP_SIGNALS}
+    import pycolmap
+
+    if threading.current_thread() is threading.main_thread():
+        for number, handler in handlers.items():
+            if handler is not None:
+                signal.signal(number, handler)
+    return pycolmap
+
+
+pycolmap = _import_pycolmap()
 
 COLMAP_DIR = "colmap"
 IMAGES, DEPTHS, SPARSE = "images", "depths", "sparse/0"

@@ -4,6 +4,10 @@ real fr1/rpy frames."""
 
 import json
 import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -189,3 +193,19 @@ def test_real_frames_reproject_onto_their_depth_images(tum_excerpt, tmp_path):
     assert model.compute_mean_track_length() > 1.5  # a point is seen from several frames
     assert (np.array(json.loads((folder / "transforms.json").read_text())["frames"][0][
         "transform_matrix"]) @ OPENGL_FROM_OPENCV)[3, 3] == 1  # fmt: skip
+
+
+def test_importing_pycolmap_keeps_the_stop_signal_handlers():
+    """pycolmap's glog hooks SIGTERM on import; a job stopped during its export must still stop
+    cleanly (the handler of `stop_requests` runs, the process goes on)."""
+    code = ("import os, signal, time\n"
+            "from jobs.preemption import stop_requests\n"
+            "with stop_requests() as stop:\n"
+            "    import outputs.colmap\n"
+            "    os.kill(os.getpid(), signal.SIGTERM)\n"
+            "    time.sleep(0.2)\n"
+            "    print('stop', stop.requested)\n")  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, cwd=Path(__file__).parents[2])  # fmt: skip
+    assert done.returncode == 0, done.stderr[-500:]
+    assert f"stop {int(signal.SIGTERM)}" in done.stdout
