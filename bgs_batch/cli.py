@@ -44,6 +44,28 @@ class ImageSize(click.ParamType):
         return width, height
 
 
+class Readout(click.ParamType):
+    """Seconds, or ``auto`` (NaN in the store: `bgs run` estimates the readout)."""
+
+    name = "SECONDS|auto"
+
+    def convert(self, value, param, ctx):  # noqa: ANN001, ANN201 - Click's signature
+        if isinstance(value, float):
+            return value
+        if str(value).strip().lower() == "auto":
+            return math.nan
+        try:
+            seconds = float(value)
+        except ValueError:
+            self.fail(f"{value!r} is neither seconds (e.g. 0.03) nor auto", param, ctx)
+        from bgs_batch.store import MAX_READOUT_S
+
+        if not 0 <= seconds < MAX_READOUT_S:
+            self.fail(f"{value} s is not a readout: use 0 <= SECONDS < {MAX_READOUT_S:g}, or "
+                      "auto", param, ctx)  # fmt: skip
+        return seconds
+
+
 class BgsGroup(click.Group):
     """Click group that reports library errors, and the file system's refusals, as one line
     naming the file and the fix, with their exit codes (`bgs_batch.errors`); `-v` adds the
@@ -161,10 +183,11 @@ def _convert_plan(ctx: click.Context, source: Path, output: Path | None, options
               type=click.FloatRange(min=0, min_open=True),
               help="Units per metre of the depth PNGs: 5000 for TUM RGB-D, 1000 (millimetres) "
                    "for most RealSense, Azure Kinect and OpenLORIS exports in this layout.")
-@click.option("--readout", type=float, metavar="SECONDS",
+@click.option("--readout", type=Readout(),
               help="Seconds over which the camera reads an image's rows out (rolling shutter; "
-                   "0: global shutter). Default: readout.txt, else 0.03 for the freiburg1/2/3 "
-                   "Kinect-class cameras, else 0. `bgs run` moves the rows to one instant.")
+                   "0: global shutter), or auto: `bgs run` estimates it from the frames. "
+                   "Default: readout.txt, else 0.03 for the freiburg1/2/3 Kinect-class "
+                   "cameras, else auto. `bgs run` moves the rows to one instant.")
 @_conversion_options
 @click.pass_context
 def convert_tum(ctx: click.Context, folder: Path, output: Path | None, **options) -> None:
@@ -649,6 +672,9 @@ def status(jobs: tuple[Path, ...], as_json: bool) -> None:
                           str(s.keyframes), fps, s.last_error or "")  # fmt: skip
         if statuses:
             Console().print(table)
+        for s in statuses:
+            if s.readout:
+                click.echo(f"{s.job}: {s.readout}")
     for err in problems[:-1]:
         click.echo(f"Error: {err}", err=True)
     if problems:

@@ -312,6 +312,27 @@ class GlobalMapConfig:
 
 
 @dataclass
+class ReadoutEstimationConfig:
+    """The rolling-shutter readout estimated from the first frames when the store does not know
+    the camera (`bgs convert … --readout auto`; `bgs_batch.slam.readout`, docs/method.md §6)."""
+
+    frames: int = 120  # the first frames searched for turns
+    pairs: int = 8  # frame pairs scored, those whose turning differs most
+    min_pairs: int = 4  # fewer informative pairs: no estimate (a global shutter is kept)
+    max_gap: int = 8  # frames between the two of a pair
+    # rad/s by which a pair's angular velocities differ at least: the shear a readout leaves
+    # differs only between frames that turn differently
+    min_turn_change: float = 0.1
+    candidates: int = 11  # readouts scored, evenly from 0 to one frame interval
+    downscale: int = 2  # the frames are registered at input resolution / this
+    # no estimate when the pairs' mean cost (each normalised by its minimum) varies by less
+    # than this over the candidates (the frames cannot tell the readouts apart), or when the
+    # standard error of the pairs' own minima exceeds this share of a frame interval
+    min_contrast: float = 0.2
+    max_standard_error: float = 0.1
+
+
+@dataclass
 class Config:
     """A whole SLAM run."""
 
@@ -335,7 +356,8 @@ class Config:
     # Seconds over which the camera reads its rows out, top to bottom; each frame is moved to one
     # instant by the camera's constant-velocity motion before it is tracked and mapped
     # (`slam.rolling_shutter`, docs/method.md §6). 0: a global shutter, as the paper assumes;
-    # None: the store's value (`bgs inspect` shows it; the converter's for the camera, else 0)
+    # None: the store's value (`bgs inspect` shows it; the converter's for the camera, else 0),
+    # estimated from the frames when the store says "unknown" (`readout_estimation`)
     rolling_shutter_readout: float | None = 0.0
     checkpoint_every: int = 10  # frames between job checkpoints (and on SIGTERM/SIGUSR1/SIGINT)
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
@@ -348,6 +370,7 @@ class Config:
     loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
     global_map: GlobalMapConfig = field(default_factory=GlobalMapConfig)
+    readout_estimation: ReadoutEstimationConfig = field(default_factory=ReadoutEstimationConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -513,6 +536,15 @@ RANGES: dict[str, Range] = {
     "global_map.merge_min_alpha": SHARE,
     "global_map.pruning_threshold": SHARE,
     "global_map.checkpoint_every": COUNT,
+    "readout_estimation.frames": COUNT,
+    "readout_estimation.pairs": COUNT,
+    "readout_estimation.min_pairs": COUNT,
+    "readout_estimation.max_gap": Range(2),
+    "readout_estimation.min_turn_change": POSITIVE,
+    "readout_estimation.candidates": Range(3),
+    "readout_estimation.downscale": COUNT,
+    "readout_estimation.min_contrast": NON_NEGATIVE,
+    "readout_estimation.max_standard_error": POSITIVE,
 }
 
 
@@ -634,12 +666,21 @@ def for_store(config: Config, store: StoreFacts) -> tuple[Config, dict[str, str]
     resolved, sources = config, {}
     for key, value in (("crop_edge", store.crop_edge),
                        ("rolling_shutter_readout", store.rolling_shutter_readout)):  # fmt: skip
-        if getattr(config, key) is None:
+        if getattr(config, key) is not None:
+            sources[key] = f"set (--set {key}=…)"
+        elif math.isnan(value):  # a readout the store does not know stays open: `needs_readout`
+            sources[key] = (f"estimated from the frames, as {store.path.name} does not know it "
+                            "(readout.json; `bgs status`)")  # fmt: skip
+        else:
             resolved = dataclasses.replace(resolved, **{key: value})
             sources[key] = f"the store's value ({store.path.name}; `bgs inspect`)"
-        else:
-            sources[key] = f"set (--set {key}=…)"
     return resolved, sources
+
+
+def needs_readout(config: Config) -> bool:
+    """True when a run must estimate the rolling-shutter readout from its frames: the config
+    leaves it to a store that does not know it (`for_store`)."""
+    return config.rolling_shutter_readout is None
 
 
 class StoreFacts(typing.Protocol):

@@ -13,7 +13,8 @@ Layout::
                  optional: crop_edge (pixels per border the reference systems crop for this
                  camera; `bgs run` applies it by default; absent = 0),
                  rolling_shutter_readout (seconds over which the camera reads its rows out;
-                 the `cpu` preset moves them to one instant; absent = 0, a global shutter)
+                 the `cpu` preset moves them to one instant; absent = 0, a global shutter;
+                 NaN = unknown: `bgs run` estimates it from the frames)
 
 Frames are deflated in worker threads with ISA-L (5x faster than zlib at level 1, and it
 releases the GIL) and written as raw chunks, so conversion uses every core; the files stay plain
@@ -26,6 +27,7 @@ thread pool.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -44,6 +46,7 @@ SCHEMA_VERSION = 1
 DEFAULT_COMPRESSION_LEVEL = 1  # ISA-L deflate levels are 0-3; 1 is the speed/size sweet spot
 READ_WORKERS = 2
 MAX_READOUT_S = 1.0  # a row readout of a second or more is no video camera's
+READOUT_UNKNOWN = math.nan  # a camera whose readout nobody gave: `bgs run` estimates it
 READ_PREFETCH = 4
 REQUIRED_ATTRS = (
     "schema_version",
@@ -93,7 +96,8 @@ class StoreMeta:
     distortion_applied: bool = False  # True: images were undistorted with `distortion`
     has_gt: bool = False
     crop_edge: int = 0  # recommended border crop (pixels per side); 0: none
-    rolling_shutter_readout: float = 0.0  # s over which the rows are read out; 0: global shutter
+    # s over which the rows are read out; 0: a global shutter; READOUT_UNKNOWN: not known
+    rolling_shutter_readout: float = 0.0
     provenance: dict[str, Any] = field(default_factory=dict)
 
 
@@ -345,9 +349,9 @@ def validate(f: h5py.File, path: Path | str) -> None:
         problems.append(f"crop_edge {crop} must be >= 0 and leave part of the "
                         f"{rgb.shape[2]}x{rgb.shape[1]} image")  # fmt: skip
     readout = float(f.attrs.get("rolling_shutter_readout", 0.0))
-    if not 0 <= readout < MAX_READOUT_S:
+    if not (math.isnan(readout) or 0 <= readout < MAX_READOUT_S):
         problems.append(f"rolling_shutter_readout {readout} must be >= 0 and below "
-                        f"{MAX_READOUT_S} s")  # fmt: skip
+                        f"{MAX_READOUT_S} s, or NaN (unknown)")  # fmt: skip
     if len(np.atleast_1d(f.attrs["distortion"])) != 5:
         problems.append("distortion must hold 5 coefficients (k1 k2 p1 p2 k3)")
     if "pose_gt" in f:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -40,7 +41,11 @@ class StoreSummary:
     provenance: dict[str, Any]
 
     def as_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """For JSON: an unknown readout (NaN in the store) is null."""
+        data = asdict(self)
+        if math.isnan(self.rolling_shutter_readout):
+            data["rolling_shutter_readout"] = None
+        return data
 
 
 def summarize(store: FrameStore) -> StoreSummary:
@@ -108,9 +113,7 @@ def print_summary(summary: StoreSummary, console: Console | None = None) -> None
         + (" (applied: images undistorted)" if s.distortion_applied else " (not applied)"),
         "crop": (f"{s.crop_edge} px per border, applied by `bgs run` (--set crop_edge=N "
                  "overrides)" if s.crop_edge else "none recommended"),
-        "shutter": (f"rolling, rows read out over {1000 * s.rolling_shutter_readout:.1f} ms; the "
-                    "`cpu` preset moves them to one instant (--set rolling_shutter_readout=S "
-                    "overrides)" if s.rolling_shutter_readout else "global"),
+        "shutter": _shutter(s.rolling_shutter_readout),
         "created by": s.created_by,
     }
     rows |= {f"  {key}": str(value) for key, value in sorted(s.provenance.items())}
@@ -118,3 +121,13 @@ def print_summary(summary: StoreSummary, console: Console | None = None) -> None
         table.add_row(key, value)
     (console or Console()).print(table)
     (console or Console()).print("[green]valid[/green] (schema v1)")
+
+
+def _shutter(readout: float) -> str:
+    if math.isnan(readout):
+        return ("unknown: `bgs run` estimates the readout from the frames (--set "
+                "rolling_shutter_readout=S sets it)")
+    if readout:
+        return (f"rolling, rows read out over {1000 * readout:.1f} ms; the `cpu` preset moves "
+                "them to one instant (--set rolling_shutter_readout=S overrides)")
+    return "global"

@@ -670,8 +670,8 @@ def _write_sequence(
         header = _TUM_HEADER.format(what=what, seed=config.seed, columns=columns)
         (root / name).write_text(header + "".join(lines))
     (root / "calibration.txt").write_text(" ".join(f"{x:.9f}" for x in config.intrinsics) + "\n")
-    if config.readout > 0:  # seconds, which `bgs convert tum` records for `bgs run`
-        (root / READOUT_FILE).write_text(f"{config.readout / config.fps:.9f}\n")
+    # seconds (0: a global shutter), which `bgs convert tum` records for `bgs run`
+    (root / READOUT_FILE).write_text(f"{config.readout / config.fps:.9f}\n")
 
 
 def encode_depth_sigma(sigma: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ records the camera's rolling-shutter readout, which the `cpu` preset corrects.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, replace
 from functools import partial
@@ -26,7 +27,7 @@ import numpy as np
 
 from bgs_batch.errors import InputError
 from bgs_batch.geometry import interpolate_poses
-from bgs_batch.store import MAX_READOUT_S, StoreMeta
+from bgs_batch.store import MAX_READOUT_S, READOUT_UNKNOWN, StoreMeta
 from converters import image_codec
 from converters.association import associate, association_summary
 from converters.image_codec import ImageDecodeError
@@ -84,7 +85,8 @@ class TumOptions:
     gt_max_gap: float = 0.1  # s, max spacing of the two GT samples bracketing a frame
     intrinsics: tuple[float, float, float, float] | None = None  # overrides detection
     distortion: tuple[float, float, float, float, float] | None = None  # overrides detection
-    readout: float | None = None  # s, rolling-shutter readout; overrides detection
+    # s, rolling-shutter readout, overrides detection; READOUT_UNKNOWN: `bgs run` estimates it
+    readout: float | None = None
     undistort: bool = True  # with known, non-zero distortion; False stores the raw images
     depth_scale: float = TUM_DEPTH_SCALE  # units per metre of the depth PNGs
     stride: int = 1
@@ -199,8 +201,10 @@ def detect_camera(folder: Path, options: TumOptions) -> tuple[Camera, dict[str, 
 def _readout(folder: Path, options: TumOptions, found: Camera | None, source: str
              ) -> tuple[float, str]:  # fmt: skip
     """The rolling-shutter readout (s) and where it came from: ``--readout`` > ``readout.txt``
-    > the published camera's > 0 (a global shutter)."""
+    > the published camera's > unknown (`bgs run` estimates it from the frames)."""
     if options.readout is not None:
+        if math.isnan(options.readout):
+            return READOUT_UNKNOWN, "--readout auto: `bgs run` estimates it from the frames"
         return float(options.readout), "--readout"
     path = folder / READOUT_FILE
     if path.is_file():
@@ -211,7 +215,8 @@ def _readout(folder: Path, options: TumOptions, found: Camera | None, source: st
         return values[0], READOUT_FILE
     if found is not None and found.readout:
         return found.readout, f"{source}: PrimeSense-class rolling shutter"
-    return 0.0, "none: a global shutter (pass --readout SECONDS for a rolling shutter)"
+    return READOUT_UNKNOWN, ("unknown camera: `bgs run` estimates it from the frames (pass "
+                             "--readout SECONDS, or 0 for a global shutter, to set it)")
 
 
 @dataclass(frozen=True)
@@ -361,9 +366,10 @@ def _check_options(folder: Path, options: TumOptions) -> None:
         raise InputError("--stride and --max-frames must be at least 1")
     if not options.depth_scale > 0:
         raise InputError(f"--depth-scale must be positive, got {options.depth_scale}")
-    if options.readout is not None and not 0 <= options.readout < MAX_READOUT_S:
-        raise InputError(f"--readout must be >= 0 and below {MAX_READOUT_S} s, got "
-                         f"{options.readout}")  # fmt: skip
+    readout = options.readout
+    if readout is not None and not (math.isnan(readout) or 0 <= readout < MAX_READOUT_S):
+        raise InputError(f"--readout must be auto, or >= 0 and below {MAX_READOUT_S} s, got "
+                         f"{readout}")  # fmt: skip
 
 
 @dataclass(frozen=True)

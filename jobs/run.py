@@ -10,6 +10,8 @@ Job directory::
                      (``TIMING_FIELDS``: seconds since the job started, and per stage)
     trajectory.txt   estimated camera-to-world poses, TUM format
     submaps/         frozen submaps (Gaussian parameters + keyframe ids), one file each
+    readout.json     the rolling-shutter readout estimated from the frames, when the store did
+                     not know it (`bgs_batch.slam.readout`)
     global_map.pt    the global map (`bgs_batch.slam.global_map`): Gaussian parameters, the
                      training and held-out frames, the visits each frame had
     sensor_net.pt    the trained sensor-noise network (state dict)
@@ -26,7 +28,7 @@ import logging
 import time
 from collections.abc import Callable
 from contextlib import suppress
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,10 +36,11 @@ import numba
 import torch
 
 from bgs_batch.atomic import atomic_file, remove_temporaries, save_torch, write_text
-from bgs_batch.config import Config, check_crop, for_store
+from bgs_batch.config import Config, check_crop, for_store, needs_readout
 from bgs_batch.metrics import ate
 from bgs_batch.slam import Slam
 from bgs_batch.slam.global_map import GlobalMapStage
+from bgs_batch.slam.readout import ReadoutEstimate, estimate_readout
 from bgs_batch.store import FrameStore
 from jobs.checkpoint import CHECKPOINT_DIR, load_latest, write_checkpoint
 from jobs.jobdir import check_or_write_record, job_lock, job_record, read_record, set_aside
@@ -58,6 +61,7 @@ class RunSummary:
     # the smoother's maximum-likelihood noise of the tracked trajectory (`smoothing.enabled`)
     trajectory_smoothing: dict[str, float] | None = None
     global_map: dict[str, int] | None = None  # `GlobalMapStage.summary`
+    readout: dict[str, Any] | None = None  # `ReadoutEstimate.as_dict`, when it was estimated
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -66,6 +70,7 @@ class RunSummary:
 ERROR_FILE = "error.json"
 SENSOR_FILE = "sensor_net.pt"
 GLOBAL_MAP_FILE = "global_map.pt"
+READOUT_FILE = "readout.json"
 SUMMARY_FILE = "summary.json"
 LOG_FILE = "log.jsonl"
 SUBMAP_DIR = "submaps"
@@ -142,6 +147,9 @@ def _run(
     write_text(job_dir / "config.json", json.dumps(document, indent=2, sort_keys=True))
     with stop_requests() as stop:
         n = len(store) if max_frames is None else min(max_frames, len(store))
+        readout = _readout(store, job_dir, cfg, n) if needs_readout(cfg) else None
+        if readout is not None:
+            cfg = replace(cfg, rolling_shutter_readout=readout.seconds or 0.0)
         slam = Slam(cfg, store.intrinsics, job_dir / SUBMAP_DIR)
         done, previous_seconds, stage_state = _resume(slam, store, job_dir)
         start = time.perf_counter() - previous_seconds
@@ -191,9 +199,24 @@ def _run(
         ate_rmse_m=ate_rmse,
         trajectory_smoothing=smoothing.as_dict() if smoothing else None,
         global_map=stage.summary(),
+        readout=None if readout is None else readout.as_dict(),
     )
     write_text(job_dir / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2))
     return summary
+
+
+def _readout(store: FrameStore, job_dir: Path, cfg: Config, n: int) -> ReadoutEstimate:
+    """The readout estimated from the store's first frames (`estimate_readout`), made once per
+    job and kept in ``readout.json``, so that a resumed run uses the same value."""
+    path = job_dir / READOUT_FILE
+    if path.exists():
+        return ReadoutEstimate.from_dict(json.loads(path.read_text()))
+    log.info("estimating the rolling-shutter readout from the first %d frames",
+             min(n, cfg.readout_estimation.frames))  # fmt: skip
+    estimate = estimate_readout(store.__getitem__, store.timestamps[:n], store.intrinsics, cfg)
+    log.warning("%s", estimate.reason)
+    write_text(path, json.dumps(estimate.as_dict(), indent=2))
+    return estimate
 
 
 def _optimise_global_map(slam: Slam, stage: GlobalMapStage, store: FrameStore,

@@ -10,7 +10,7 @@ from typing import Any
 from bgs_batch.errors import InputError
 from jobs.jobdir import JOB_FILE, lock_owner_alive
 from jobs.preemption import Preempted
-from jobs.run import ERROR_FILE, LOG_FILE, SUMMARY_FILE
+from jobs.run import ERROR_FILE, LOG_FILE, READOUT_FILE, SUMMARY_FILE
 
 
 @dataclass(frozen=True)
@@ -21,6 +21,7 @@ class JobStatus:
     fps: float | None
     keyframes: int
     last_error: str | None
+    readout: str | None = None  # the readout estimated from the frames (`readout.json`)
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -66,4 +67,7 @@ def job_status(job_dir: Path) -> JobStatus:
         error = "ended without an error (killed?); running it again resumes"
     else:
         state = "new"
-    return JobStatus(str(job_dir), state, frames, fps, keyframes, error)
+    readout = None
+    if (job_dir / READOUT_FILE).exists():
+        readout = json.loads((job_dir / READOUT_FILE).read_text())["reason"]
+    return JobStatus(str(job_dir), state, frames, fps, keyframes, error, readout)

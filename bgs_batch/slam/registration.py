@@ -112,6 +112,13 @@ def register(source: View, target: View, cfg: RegistrationConfig,
     return Registration(transform, fitness, rmse, steps)
 
 
+def residuals(source: View, target: View, cfg: RegistrationConfig, transform: torch.Tensor
+              ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The geometric (m) and photometric residuals of the source pixels associated with the
+    target at `transform`, at full resolution: what `register` minimises."""
+    return _Problem(source, target, cfg).residuals(transform)
+
+
 class _Problem:
     """One pyramid level: the source points and the target images the residuals read, as the
     float64 arrays of `registration_kernels`."""
@@ -142,7 +149,7 @@ class _Problem:
              ) -> tuple[torch.Tensor | None, tuple[float, float]]:  # fmt: skip
         """The Gauss-Newton step ξ from `transform`, and the terms' scales (fixed per level)."""
         if scales is None:
-            geometric, photometric = self._residuals(transform)
+            geometric, photometric = self.residuals(transform)
             scales = (_robust_scale(geometric, GEOMETRIC_SCALE_FLOOR_M),
                       _robust_scale(photometric, PHOTOMETRIC_SCALE_FLOOR))  # fmt: skip
         normal, rhs, used = kernels.normal_equations(
@@ -156,12 +163,12 @@ class _Problem:
 
     def fit(self, transform: torch.Tensor) -> tuple[float, float]:
         """(fitness, point-to-plane RMS) of `transform` at this level."""
-        geometric, _ = self._residuals(transform)
+        geometric, _ = self.residuals(transform)
         if geometric.size == 0:
             return 0.0, float("inf")
         return geometric.size / self.points.shape[0], float(np.sqrt(np.mean(geometric**2)))
 
-    def _residuals(self, transform: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    def residuals(self, transform: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         return kernels.residuals(self.points, self.intensities, transform.numpy(), *self.target)
 
 

@@ -73,9 +73,11 @@ def test_tum_layout(open_seq: Path) -> None:
         "depth.txt",
         "depth_sigma",
         "groundtruth.txt",
+        "readout.txt",  # 0: a global shutter, known (not left to `bgs run` to estimate)
         "rgb",
         "rgb.txt",
     ]
+    assert float((open_seq / "readout.txt").read_text()) == 0.0
     headers = {
         "rgb.txt": ("# color images", "# timestamp filename"),
         "depth.txt": ("# depth maps", "# timestamp filename"),

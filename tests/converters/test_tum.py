@@ -1,5 +1,7 @@
 """TUM conversion: correctness on made-up and real data, and every bad input the issue lists."""
 
+import json
+import math
 import os
 import signal
 import subprocess
@@ -233,8 +235,6 @@ def test_real_fr1_rpy_excerpt(tum_excerpt, tmp_path):
     )
     result = CliRunner().invoke(main, ["inspect", str(out), "--json"])
     assert result.exit_code == 0
-    import json
-
     summary = json.loads(result.output)
     assert summary["frames"] == 240 and (summary["width"], summary["height"]) == (640, 480)
     assert summary["gt_coverage_percent"] == 100.0
@@ -306,8 +306,17 @@ def test_the_rolling_shutter_readout_comes_from_the_camera_a_file_or_the_option(
     other = make_tum_folder(tmp_path / "b", frames=2, name="my_camera")
     (other / "calibration.txt").write_text("20 20 16 12\n")
     assert convert(other, tmp_path / "other.h5").exit_code == 0
-    with FrameStore(tmp_path / "other.h5") as store:  # an unknown camera: a global shutter
-        assert store.rolling_shutter_readout == 0
+    with FrameStore(tmp_path / "other.h5") as store:  # an unknown camera: the run estimates it
+        assert math.isnan(store.rolling_shutter_readout)
+        assert "estimates it" in store.provenance["rolling_shutter_readout_source"]
+    shown = CliRunner().invoke(main, ["inspect", str(tmp_path / "other.h5")])
+    assert "unknown: `bgs run` estimates" in " ".join(shown.output.split())
+    shown = CliRunner().invoke(main, ["inspect", "--json", str(tmp_path / "other.h5")])
+    assert json.loads(shown.output)["rolling_shutter_readout"] is None
+    assert convert(fr1, tmp_path / "auto.h5", "--readout", "auto").exit_code == 0
+    with FrameStore(tmp_path / "auto.h5") as store:  # a known camera, told to estimate
+        assert math.isnan(store.rolling_shutter_readout)
+        assert store.provenance["rolling_shutter_readout_source"].startswith("--readout auto")
     (other / "readout.txt").write_text("0.025\n")
     assert convert(other, tmp_path / "file.h5").exit_code == 0
     with FrameStore(tmp_path / "file.h5") as store:
@@ -315,14 +324,15 @@ def test_the_rolling_shutter_readout_comes_from_the_camera_a_file_or_the_option(
         assert store.provenance["rolling_shutter_readout_source"] == "readout.txt"
 
 
-@pytest.mark.parametrize(("text", "option"), [("-0.01", None), ("0.01 0.02", None),
-                                              ("fast", None), (None, "1.5"), (None, "-1")])
-def test_a_bad_readout_is_refused_and_writes_nothing(tmp_path, text, option):
+@pytest.mark.parametrize(("text", "option", "code"), [
+    ("-0.01", None, 3), ("0.01 0.02", None, 3), ("fast", None, 3),
+    (None, "1.5", 2), (None, "-1", 2), (None, "fast", 2), (None, "nan", 2)])  # fmt: skip
+def test_a_bad_readout_is_refused_and_writes_nothing(tmp_path, text, option, code):
     folder = make_tum_folder(tmp_path / "a", frames=2)
     if text is not None:
         (folder / "readout.txt").write_text(text)
     result = convert(folder, tmp_path / "s.h5", *(["--readout", option] if option else []))
-    assert result.exit_code == 3 and "readout" in result.output
+    assert result.exit_code == code and "readout" in result.output
     assert "Traceback" not in result.output and not list(tmp_path.glob("s.h5*"))
 
 
