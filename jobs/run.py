@@ -150,6 +150,8 @@ def _run(
         readout = _readout(store, job_dir, cfg, n) if needs_readout(cfg) else None
         if readout is not None:
             cfg = replace(cfg, rolling_shutter_readout=readout.seconds or 0.0)
+            if stop.requested:  # during the estimate: kept in readout.json, no frame to save
+                raise Preempted(stop.requested, "after the readout estimate", job_dir)
         slam = Slam(cfg, store.intrinsics, job_dir / SUBMAP_DIR)
         done, previous_seconds, stage_state = _resume(slam, store, job_dir)
         start = time.perf_counter() - previous_seconds
@@ -209,14 +211,24 @@ def _readout(store: FrameStore, job_dir: Path, cfg: Config, n: int) -> ReadoutEs
     """The readout estimated from the store's first frames (`estimate_readout`), made once per
     job and kept in ``readout.json``, so that a resumed run uses the same value."""
     path = job_dir / READOUT_FILE
-    if path.exists():
-        return ReadoutEstimate.from_dict(json.loads(path.read_text()))
+    if (recorded := read_readout(job_dir)) is not None:
+        return recorded
+    if path.exists():  # damaged by hand: estimated again (the same frames give the same value)
+        log.warning("%s is not a readout estimate; estimating it again", path)
     log.info("estimating the rolling-shutter readout from the first %d frames",
              min(n, cfg.readout_estimation.frames))  # fmt: skip
     estimate = estimate_readout(store.__getitem__, store.timestamps[:n], store.intrinsics, cfg)
     log.warning("%s", estimate.reason)
     write_text(path, json.dumps(estimate.as_dict(), indent=2))
     return estimate
+
+
+def read_readout(job_dir: Path) -> ReadoutEstimate | None:
+    """The job's ``readout.json``; None when it has none, or one that does not parse."""
+    try:
+        return ReadoutEstimate.from_dict(json.loads((job_dir / READOUT_FILE).read_text()))
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
 
 
 def _optimise_global_map(slam: Slam, stage: GlobalMapStage, store: FrameStore,

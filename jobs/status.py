@@ -10,7 +10,7 @@ from typing import Any
 from bgs_batch.errors import InputError
 from jobs.jobdir import JOB_FILE, lock_owner_alive
 from jobs.preemption import Preempted
-from jobs.run import ERROR_FILE, LOG_FILE, READOUT_FILE, SUMMARY_FILE
+from jobs.run import ERROR_FILE, LOG_FILE, SUMMARY_FILE, read_readout
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,6 @@ def job_status(job_dir: Path) -> JobStatus:
         error = "ended without an error (killed?); running it again resumes"
     else:
         state = "new"
-    readout = None
-    if (job_dir / READOUT_FILE).exists():
-        readout = json.loads((job_dir / READOUT_FILE).read_text())["reason"]
-    return JobStatus(str(job_dir), state, frames, fps, keyframes, error, readout)
+    readout = read_readout(job_dir)
+    return JobStatus(str(job_dir), state, frames, fps, keyframes, error,
+                     readout.reason if readout else None)  # fmt: skip

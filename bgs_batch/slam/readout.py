@@ -115,8 +115,8 @@ class _Levels:
                  downscale: int) -> None:  # fmt: skip
         self.read, self.intrinsics, self.cfg, self.downscale = read, intrinsics, cfg, downscale
 
-    def view(self, index: int, readout_motion: np.ndarray | None = None) -> View:
-        full, _ = prepare_frame(self.read(index), self.intrinsics, self.cfg, None, readout_motion)
+    def view(self, frame: Frame, readout_motion: np.ndarray | None = None) -> View:
+        full, _ = prepare_frame(frame, self.intrinsics, self.cfg, None, readout_motion)
         level = downsample(full, self.downscale)
         return View.of(level.rgb, level.depth, level.camera)
 
@@ -126,9 +126,9 @@ def _chain(level: _Levels, n: int, cfg: Config) -> np.ndarray:
     (streamed: two frames in memory)."""
     poses = [np.eye(4)]
     relative = torch.eye(4, dtype=torch.float64)
-    previous = level.view(0)
+    previous = level.view(level.read(0))
     for i in range(1, n):
-        current = level.view(i)
+        current = level.view(level.read(i))
         relative = register(current, previous, cfg.registration, relative).transform
         poses.append(poses[-1] @ relative.numpy())
         previous = current
@@ -171,10 +171,11 @@ def _pair_costs(level: _Levels, poses: np.ndarray, timestamps: np.ndarray, k: in
                 candidates: np.ndarray, cfg: Config) -> np.ndarray:  # fmt: skip
     """The registration cost of frames j and k, both rectified at each candidate readout."""
     initial = torch.from_numpy(np.linalg.inv(poses[k]) @ poses[j])
+    frame_j, frame_k = level.read(j), level.read(k)
     costs, scales = [], None
     for readout in candidates:
-        source = level.view(j, _readout_motion(poses, timestamps, j, readout))
-        target = level.view(k, _readout_motion(poses, timestamps, k, readout))
+        source = level.view(frame_j, _readout_motion(poses, timestamps, j, readout))
+        target = level.view(frame_k, _readout_motion(poses, timestamps, k, readout))
         transform = register(source, target, cfg.registration, initial).transform
         geometric, photometric = residuals(source, target, cfg.registration, transform)
         if scales is None:  # the unrectified pair's, for every candidate

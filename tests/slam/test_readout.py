@@ -5,14 +5,18 @@ made once per job and kept across a resume."""
 import dataclasses
 import json
 import math
+import os
+import signal
 
 import pytest
 
+import jobs.run
 from bgs_batch.config import load_config
 from bgs_batch.slam.readout import estimate_readout
 from bgs_batch.store import FrameStore
 from converters.synthetic import motion_config, synthesize
 from converters.tum import TumOptions, convert_tum
+from jobs.preemption import Preempted
 from jobs.run import READOUT_FILE, run_job
 from jobs.status import job_status
 
@@ -83,3 +87,27 @@ def test_a_job_estimates_once_records_it_and_a_rerun_keeps_it(tmp_path, monkeypa
     monkeypatch.setattr("jobs.run.estimate_readout", again)
     (tmp_path / "job" / "summary.json").unlink()  # as if stopped before its end
     assert run_job(store, tmp_path / "job", cfg, max_frames=24).readout == recorded
+    monkeypatch.undo()
+    (tmp_path / "job" / READOUT_FILE).write_text("{")  # damaged by hand
+    assert job_status(tmp_path / "job").readout is None  # no traceback
+    (tmp_path / "job" / "summary.json").unlink()
+    assert run_job(store, tmp_path / "job", cfg, max_frames=24).readout == recorded  # again
+    assert json.loads((tmp_path / "job" / READOUT_FILE).read_text()) == recorded
+
+
+def test_a_stop_during_the_estimate_keeps_it_and_stops_before_the_first_frame(
+        tmp_path, monkeypatch):  # fmt: skip
+    store = synthetic_store(tmp_path, "shake", ("rolling_shutter",), seed=35, frames=8)
+    real = jobs.run.estimate_readout
+
+    def stopped(*args):
+        found = real(*args)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return found
+
+    monkeypatch.setattr(jobs.run, "estimate_readout", stopped)
+    cfg = load_config("cpu", ["global_map.passes=0"])
+    with pytest.raises(Preempted, match="after the readout estimate"):
+        run_job(store, tmp_path / "job", cfg)
+    assert (tmp_path / "job" / READOUT_FILE).exists()
+    assert not (tmp_path / "job" / "log.jsonl").exists()  # no frame was tracked
