@@ -7,7 +7,8 @@ two frames turning at different velocities are sheared differently, and no rigid
 explains both unless each is first rectified with the right r (`rolling_shutter.rectify`). So:
 
 1. **Velocities.** The first ``frames`` frames are registered, each to the one before, as
-   global-shutter images at ``downscale`` (the warm start's `registration.register`), chaining
+   global-shutter images at the largest integer downscale that leaves ``min_width`` pixels
+   (the warm start's `registration.register`), chaining
    a trajectory; each frame's angular velocity is the central difference of its neighbours.
 2. **Pairs.** Frames up to ``max_gap`` apart whose angular velocities differ by at least
    ``min_turn_change`` rad/s, the most different first, no frame in two pairs.
@@ -74,7 +75,7 @@ def estimate_readout(read: Callable[[int], Frame], timestamps: np.ndarray,
     if n < 3:
         return _unknown(n, f"{n} frames: too few to see the camera turn")
     level = _Levels(read, intrinsics, dataclasses.replace(cfg, rolling_shutter_readout=0.0),
-                    est.downscale)  # fmt: skip
+                    est.min_width)  # fmt: skip
     poses = _chain(level, n, cfg)
     velocities = _angular_velocities(poses, timestamps[:n])
     pairs = _informative_pairs(velocities, est)
@@ -112,12 +113,12 @@ class _Levels:
     """Frames as registration views at the estimator's resolution, optionally rectified."""
 
     def __init__(self, read: Callable[[int], Frame], intrinsics: np.ndarray, cfg: Config,
-                 downscale: int) -> None:  # fmt: skip
-        self.read, self.intrinsics, self.cfg, self.downscale = read, intrinsics, cfg, downscale
+                 min_width: int) -> None:  # fmt: skip
+        self.read, self.intrinsics, self.cfg, self.min_width = read, intrinsics, cfg, min_width
 
     def view(self, frame: Frame, readout_motion: np.ndarray | None = None) -> View:
         full, _ = prepare_frame(frame, self.intrinsics, self.cfg, None, readout_motion)
-        level = downsample(full, self.downscale)
+        level = downsample(full, max(1, full.camera.width // self.min_width))
         return View.of(level.rgb, level.depth, level.camera)
 
 

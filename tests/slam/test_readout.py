@@ -43,7 +43,7 @@ def estimate(store_path, **settings):
     ("shake", ("rolling_shutter",), SIMULATED_S),
     ("shake", (), 0.0)])  # fmt: skip
 def test_the_simulated_readout_is_recovered(tmp_path, motion, effects, truth):
-    found = estimate(synthetic_store(tmp_path, motion, effects, seed=31), downscale=1)
+    found = estimate(synthetic_store(tmp_path, motion, effects, seed=31))
     assert found.seconds is not None, found.reason
     assert abs(found.seconds - truth) <= 0.15 * SIMULATED_S, found
     assert found.standard_error < 0.1 * SIMULATED_S and len(found.pairs) >= 4
@@ -69,8 +69,7 @@ def test_too_few_frames_say_unknown(tmp_path):
 def test_a_job_estimates_once_records_it_and_a_rerun_keeps_it(tmp_path, monkeypatch):
     store = synthetic_store(tmp_path, "shake", ("rolling_shutter",), seed=34, frames=24)
     cfg = load_config("cpu", ["tracking.iterations=8", "mapping.iterations=4",
-                              "mapping.new_submap_iterations=8", "global_map.passes=1",
-                              "readout_estimation.downscale=1"])  # fmt: skip
+                              "mapping.new_submap_iterations=8", "global_map.passes=1"])
     summary = run_job(store, tmp_path / "job", cfg, max_frames=24)
     recorded = json.loads((tmp_path / "job" / READOUT_FILE).read_text())
     assert summary.readout == recorded and recorded["seconds"] is not None
