@@ -441,7 +441,8 @@ def test_a_lock_that_is_not_a_file_is_one_line_naming_what_to_remove(tmp_path, k
 
 
 def test_a_second_convert_to_the_same_output_exits_5_and_the_first_finishes(tmp_path):
-    folder = make_tum_folder(tmp_path / "src", frames=40)
+    # long enough that the second convert finds it still writing, even on a loaded machine
+    folder = make_tum_folder(tmp_path / "src", frames=400, distinct=False)
     out = tmp_path / "s.h5"
     bgs_bin = str(Path(sys.executable).with_name("bgs"))
     first = subprocess.Popen([bgs_bin, "-q", "convert", "tum", str(folder), "-o", str(out)],
@@ -455,7 +456,7 @@ def test_a_second_convert_to_the_same_output_exits_5_and_the_first_finishes(tmp_
     one_line_error(second, 5, str(out), "being written by another bgs convert",
                    f"process {first.pid}")  # fmt: skip
     with h5py.File(out) as f:
-        assert f["rgb"].shape[0] == 40
+        assert f["rgb"].shape[0] == 400
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.h5", "src"]
 
 
