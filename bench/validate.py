@@ -13,10 +13,15 @@ over seeds, not only on the dev excerpt it was tried on. The sequences:
 - ``walk``, ``shake``, ``loop``, ``hard``: synthetic rooms from ``bgs synth`` with seeds no test
   or preset uses: a brisk walk, fr1/rpy-like roll/pitch/yaw shaking, a loop, and shaking with
   motion blur, a rolling shutter and large depth holes;
+- ``rs-both``, ``rs-mixed``: one shaking room seen by a camera reading both images out over
+  0.9 of a frame, and by one whose depth is taken at once beside its rolling colour (a
+  RealSense D435), readouts known;
 - ``v240-auto``, ``v420-auto``, ``hard-auto``: those converted with ``--readout auto``, as a
   camera the converter does not know, so that the run estimates the readout from the frames;
-  ``v240-gs``, ``v420-gs``: converted as global shutters. A fourth table shows the estimates
-  beside the known 30 ms and the ATE of the three runs of each recording.
+  ``mix-auto``: ``rs-mixed`` with ``--readout auto --depth-readout 0``; ``v240-gs``,
+  ``v420-gs``: converted as global shutters. A fourth table shows the estimates beside the
+  known 30 ms and the ATE of the three runs of each recording, and the mixed room's ATE over
+  the room read out alike.
 
 Every sequence is converted with the defaults (what a user gets) and run with the `cpu` preset at
 seeds K..K+N-1 (``--first-seed K``, ``--seeds N``; 0..2 by default) plus the ``--set`` overrides,
@@ -96,14 +101,23 @@ SYNTHETIC = {  # name: (motion, effects, loop, seed); seeds that no test, preset
     "loop": ("handheld", (), True, 7303),
     "hard": ("shake", ("blur", "rolling_shutter", "holes"), False, 7404),
 }
+# One shaking room seen by a camera reading both images out over 0.9 of a frame, and by one
+# whose depth is taken at once beside its rolling colour (a RealSense D435); readouts known
+SHUTTER_ROOMS = {
+    "rs-both": ("shake", ("rolling_shutter",), False, 7505),
+    "rs-mixed": ("shake", ("rolling_shutter", "global_shutter_depth"), False, 7505),
+}
+ROOMS = {**SYNTHETIC, **SHUTTER_ROOMS}
 # Sequences above converted as for a camera the converter does not know: the readout left to the
-# run to estimate ("auto"), or a global shutter ("gs", what `bgs convert` assumed before)
-READOUT_VARIANTS = {  # name: (sequence, readout)
-    "v240-auto": ("val-240", READOUT_UNKNOWN),
-    "v420-auto": ("val-420", READOUT_UNKNOWN),
-    "hard-auto": ("hard", READOUT_UNKNOWN),
-    "v240-gs": ("val-240", 0.0),
-    "v420-gs": ("val-420", 0.0),
+# run to estimate ("auto"; the D435-like room told only that its depth is a global shutter), or
+# a global shutter ("gs", what `bgs convert` assumed before)
+READOUT_VARIANTS = {  # name: (sequence, readout, depth readout (None: the same))
+    "v240-auto": ("val-240", READOUT_UNKNOWN, None),
+    "v420-auto": ("val-420", READOUT_UNKNOWN, None),
+    "hard-auto": ("hard", READOUT_UNKNOWN, None),
+    "mix-auto": ("rs-mixed", READOUT_UNKNOWN, 0.0),
+    "v240-gs": ("val-240", 0.0, None),
+    "v420-gs": ("val-420", 0.0, None),
 }
 
 
@@ -153,26 +167,29 @@ def make_stores(root: Path, only: list[str], max_frames: int | None) -> dict[str
         if not (folder / "rgb.txt").is_file():
             sys.exit(f"bench/validate.py: no TUM folder at {folder} (../shared/data is needed)")
         stores[name] = convert_tum(folder, root / f"{name}.h5", TumOptions(max_frames=max_frames))
-    for name, (motion, effects, loop, seed) in SYNTHETIC.items():
+    for name in ROOMS:
         if only and name not in only:
             continue
-        width, height = SYNTHETIC_SIZE
-        config = motion_config(motion, effects, frames=SYNTHETIC_FRAMES, width=width,
-                               height=height, seed=seed, loop=loop)  # fmt: skip
-        sequence = synthesize(root / name, config)
+        sequence = synthesize_room(root, name)
         stores[name] = convert_tum(sequence, root / f"{name}.h5", TumOptions(max_frames=max_frames))
-    for name, (base, readout) in READOUT_VARIANTS.items():
+    for name, (base, readout, depth_readout) in READOUT_VARIANTS.items():
         if only and name not in only:
             continue
         folder = REAL.get(base) or root / base
         if not (folder / "rgb.txt").is_file():  # a synthetic sequence not selected itself
-            motion, effects, loop, seed = SYNTHETIC[base]
-            folder = synthesize(folder, motion_config(
-                motion, effects, frames=SYNTHETIC_FRAMES, width=SYNTHETIC_SIZE[0],
-                height=SYNTHETIC_SIZE[1], seed=seed, loop=loop))  # fmt: skip
-        stores[name] = convert_tum(folder, root / f"{name}.h5",
-                                   TumOptions(readout=readout, max_frames=max_frames))  # fmt: skip
+            folder = synthesize_room(root, base)
+        options = TumOptions(readout=readout, depth_readout=depth_readout, max_frames=max_frames)
+        stores[name] = convert_tum(folder, root / f"{name}.h5", options)
     return stores
+
+
+def synthesize_room(root: Path, name: str) -> Path:
+    """The synthetic sequence `name` of `ROOMS`, rendered into ``root / name``."""
+    motion, effects, loop, seed = ROOMS[name]
+    width, height = SYNTHETIC_SIZE
+    return synthesize(root / name, motion_config(motion, effects, frames=SYNTHETIC_FRAMES,
+                                                 width=width, height=height, seed=seed,
+                                                 loop=loop))  # fmt: skip
 
 
 def run_sequence(name: str, store: Path, root: Path, seeds: range, overrides: list[str]
@@ -210,7 +227,7 @@ def run_sequence(name: str, store: Path, root: Path, seeds: range, overrides: li
         result.rendering.append(rendering_scores(metrics, summary))
         if summary.readout is not None:
             result.readouts.append(summary.readout["seconds"])
-        if name in SYNTHETIC:
+        if name in ROOMS:
             result.sigma_rho.append(sigma_rank(job, store, root / name))
         print(f"  {name} seed {seed}: ATE {summary.ate_rmse_m * 100:.2f} cm, "
               f"{summary.fps:.2f} fps", flush=True)  # fmt: skip
@@ -356,9 +373,15 @@ def print_rendering_table(results: list[SequenceResult]) -> None:
 
 def print_readout_table(results: list[SequenceResult]) -> None:
     by_name = {r.name: r for r in results}
+    global_shutter = {base: by_name.get(name) for name, (base, readout, _) in
+                      READOUT_VARIANTS.items() if readout == 0}  # fmt: skip
     rows = [(r, by_name.get(READOUT_VARIANTS[r.name][0]),
-             by_name.get(READOUT_VARIANTS[r.name][0].replace("val-", "v") + "-gs"))
+             global_shutter.get(READOUT_VARIANTS[r.name][0]))
             for r in results if r.name in READOUT_VARIANTS and r.readouts]  # fmt: skip
+    if "rs-mixed" in by_name and "rs-both" in by_name:
+        print()
+        print(f"Mixed shutters (rolling colour, global depth; readouts known): ATE "
+              f"{mixed_ratio(by_name):.2f}x the same room read out alike (rs-both)")
     if not rows:
         return
     print()
@@ -369,14 +392,19 @@ def print_readout_table(results: list[SequenceResult]) -> None:
               f"{'auto/known':>11}{'global':>8}")  # fmt: skip
     print(header)
     print("-" * len(header))
-    for r, known, global_shutter in rows:
+    for r, known, global_run in rows:
         estimate = readout_ms(r)
         error = f"{estimate / 30 - 1:+.0%}" if estimate == estimate else "-"
         known_ate = statistics.mean(known.ates) * 100 if known else float("nan")
-        gs = statistics.mean(global_shutter.ates) * 100 if global_shutter else float("nan")
+        gs = statistics.mean(global_run.ates) * 100 if global_run else float("nan")
         auto = statistics.mean(r.ates) * 100
         print(f"{r.name:<10}{estimate:>12.1f}{error:>8}{auto:>10.2f}{known_ate:>8.2f}"
               f"{auto / known_ate:>11.2f}{gs:>8.2f}")  # fmt: skip
+
+
+def mixed_ratio(by_name: dict[str, SequenceResult]) -> float:
+    """Mean ATE of the D435-like room over the room read out alike."""
+    return statistics.mean(by_name["rs-mixed"].ates) / statistics.mean(by_name["rs-both"].ates)
 
 
 def readout_ms(result: SequenceResult) -> float:
@@ -419,11 +447,16 @@ def summary_line(results: list[SequenceResult]) -> str:
                  f"({costliest.name})")  # fmt: skip
     estimates = {r.name: readout_ms(r) for r in results if r.name in READOUT_VARIANTS
                  and r.readouts}  # fmt: skip
-    if estimates:
-        worst = max(estimates, key=lambda n: abs(estimates[n] / 30 - 1)
-                    if estimates[n] == estimates[n] else math.inf)  # fmt: skip
-        parts.append(f"readout estimated within {abs(estimates[worst] / 30 - 1):.0%} of 30 ms "
+    missing = [name for name, ms in estimates.items() if math.isnan(ms)]
+    found = {name: ms for name, ms in estimates.items() if not math.isnan(ms)}
+    if found:
+        worst = max(found, key=lambda n: abs(found[n] / 30 - 1))
+        parts.append(f"readout estimated within {abs(found[worst] / 30 - 1):.0%} of 30 ms "
                      f"({worst})")  # fmt: skip
+    if missing:
+        parts.append(f"readout not estimated on {', '.join(missing)}")
+    if "rs-mixed" in by_name and "rs-both" in by_name:
+        parts.append(f"mixed shutters {mixed_ratio(by_name):.2f}x both rolling")
     rhos = {r.name: min(r.sigma_rho) for r in results if r.sigma_rho}
     if rhos:
         worst = min(rhos, key=rhos.get)
@@ -437,7 +470,7 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=0, metavar="K",
                         help="start at seed K (more seeds for a paired comparison)")  # fmt: skip
     parser.add_argument("--only", nargs="+", default=[],
-                        choices=[*REAL, *SYNTHETIC, *READOUT_VARIANTS],
+                        choices=[*REAL, *ROOMS, *READOUT_VARIANTS],
                         metavar="NAME", help="run only these sequences")  # fmt: skip
     parser.add_argument("--set", dest="overrides", action="append", default=[],
                         metavar="KEY=VALUE", help="settings to validate (repeatable)")  # fmt: skip

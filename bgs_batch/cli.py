@@ -45,24 +45,27 @@ class ImageSize(click.ParamType):
 
 
 class Readout(click.ParamType):
-    """Seconds, or ``auto`` (NaN in the store: `bgs run` estimates the readout)."""
+    """Seconds, or ``auto`` where allowed (NaN in the store: `bgs run` estimates the readout)."""
 
-    name = "SECONDS|auto"
+    def __init__(self, auto: bool = True) -> None:
+        self.auto = auto
+        self.name = "SECONDS|auto" if auto else "SECONDS"
 
     def convert(self, value, param, ctx):  # noqa: ANN001, ANN201 - Click's signature
         if isinstance(value, float):
             return value
-        if str(value).strip().lower() == "auto":
+        if self.auto and str(value).strip().lower() == "auto":
             return math.nan
+        either = " nor auto" if self.auto else ""
         try:
             seconds = float(value)
         except ValueError:
-            self.fail(f"{value!r} is neither seconds (e.g. 0.03) nor auto", param, ctx)
+            self.fail(f"{value!r} is not seconds (e.g. 0.03){either}", param, ctx)
         from bgs_batch.store import MAX_READOUT_S
 
         if not 0 <= seconds < MAX_READOUT_S:
-            self.fail(f"{value} s is not a readout: use 0 <= SECONDS < {MAX_READOUT_S:g}, or "
-                      "auto", param, ctx)  # fmt: skip
+            self.fail(f"{value} s is not a readout: use 0 <= SECONDS < {MAX_READOUT_S:g}"
+                      + (", or auto" if self.auto else ""), param, ctx)  # fmt: skip
         return seconds
 
 
@@ -188,6 +191,10 @@ def _convert_plan(ctx: click.Context, source: Path, output: Path | None, options
                    "0: global shutter), or auto: `bgs run` estimates it from the frames. "
                    "Default: readout.txt, else 0.03 for the freiburg1/2/3 Kinect-class "
                    "cameras, else auto. `bgs run` moves the rows to one instant.")
+@click.option("--depth-readout", type=Readout(auto=False),
+              help="The depth image's readout when its sensor reads out otherwise than the "
+                   "colour one, e.g. 0 for a RealSense D435's global-shutter depth with "
+                   "--readout auto (or its colour readout). Default: --readout's.")
 @_conversion_options
 @click.pass_context
 def convert_tum(ctx: click.Context, folder: Path, output: Path | None, **options) -> None:
@@ -330,12 +337,15 @@ def inspect(store: Path, as_json: bool, verify: bool, workers: int) -> None:
 @click.option("--rolling-shutter", is_flag=True,
               help="Rows read out top to bottom over 0.9 of a frame (colour and depth); the "
                    "readout goes to readout.txt, which `bgs convert tum` records.")
+@click.option("--global-shutter-depth", is_flag=True,
+              help="With --rolling-shutter: the depth image is taken at once, only the colour "
+                   "rows are read out over time (as a RealSense D435's sensors).")
 @click.option("--holes", is_flag=True, help="Large depth holes (15 percent of the image).")
 @click.option("--overwrite", is_flag=True, help="Replace OUT_DIR if it exists.")
 @click.pass_context
 def synth(ctx: click.Context, out_dir: Path, frames: int, size: tuple[int, int], seed: int,
-          loop: bool, motion: str, blur: bool, rolling_shutter: bool, holes: bool,
-          overwrite: bool) -> None:  # fmt: skip
+          loop: bool, motion: str, blur: bool, rolling_shutter: bool,
+          global_shutter_depth: bool, holes: bool, overwrite: bool) -> None:  # fmt: skip
     """Render a synthetic RGB-D sequence of a textured room, in TUM layout.
 
     Open3D ray casting of a room with furniture, a smooth camera path, Kinect-like depth noise
@@ -354,8 +364,12 @@ def synth(ctx: click.Context, out_dir: Path, frames: int, size: tuple[int, int],
     from bgs_batch.progress import progress_bar
     from converters.synthetic import motion_config, synthesize
 
-    effects = tuple(name for name, on in (("blur", blur), ("rolling_shutter", rolling_shutter),
-                                          ("holes", holes)) if on)  # fmt: skip
+    if global_shutter_depth and not rolling_shutter:
+        raise click.UsageError("--global-shutter-depth needs --rolling-shutter (the colour "
+                               "image's readout)")  # fmt: skip
+    effects = tuple(name for name, on in (
+        ("blur", blur), ("rolling_shutter", rolling_shutter),
+        ("global_shutter_depth", global_shutter_depth), ("holes", holes)) if on)  # fmt: skip
     config = motion_config(motion, effects, frames=frames, width=size[0], height=size[1],
                            seed=seed, loop=loop)  # fmt: skip
     with progress_bar("rendering", frames, _show_progress(ctx)) as advance:

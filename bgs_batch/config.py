@@ -362,6 +362,10 @@ class Config:
     # None: the store's value (`bgs inspect` shows it; the converter's for the camera, else 0),
     # estimated from the frames when the store says "unknown" (`readout_estimation`)
     rolling_shutter_readout: float | None = 0.0
+    # The depth image's readout, when the depth sensor reads out otherwise than the colour one
+    # (a RealSense D435: global-shutter depth, rolling-shutter colour). None: the store's
+    # (`bgs inspect`), or `rolling_shutter_readout` when that is set (--set)
+    depth_rolling_shutter_readout: float | None = None
     checkpoint_every: int = 10  # frames between job checkpoints (and on SIGTERM/SIGUSR1/SIGINT)
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -414,6 +418,7 @@ RANGES: dict[str, Range] = {
     "max_depth": Range(0.1, 1000),  # m: no depth camera reads nearer than 0.1 m
     "depth_time_lag": Range(-1, 1),  # s; either sensor may lag the other
     "rolling_shutter_readout": Range(0, 1),  # s
+    "depth_rolling_shutter_readout": Range(0, 1),  # s
     "checkpoint_every": COUNT,
     "uncertainty.initial_logit": ANY,
     "uncertainty.map_floor": POSITIVE,
@@ -677,13 +682,33 @@ def for_store(config: Config, store: StoreFacts) -> tuple[Config, dict[str, str]
         else:
             resolved = dataclasses.replace(resolved, **{key: value})
             sources[key] = f"the store's value ({store.path.name}; `bgs inspect`)"
+    key = "depth_rolling_shutter_readout"
+    if config.depth_rolling_shutter_readout is not None:
+        sources[key] = f"set (--set {key}=…)"
+    elif config.rolling_shutter_readout is not None:  # set by hand: the depth follows
+        resolved = dataclasses.replace(resolved, **{key: config.rolling_shutter_readout})
+        sources[key] = "rolling_shutter_readout's (set)"
+    elif math.isnan(store.depth_rolling_shutter_readout):
+        sources[key] = sources["rolling_shutter_readout"] if math.isnan(
+            store.rolling_shutter_readout) else "estimated from the frames (readout.json)"
+    else:
+        resolved = dataclasses.replace(resolved, **{key: store.depth_rolling_shutter_readout})
+        sources[key] = f"the store's value ({store.path.name}; `bgs inspect`)"
     return resolved, sources
 
 
 def needs_readout(config: Config) -> bool:
-    """True when a run must estimate the rolling-shutter readout from its frames: the config
+    """True when a run must estimate a rolling-shutter readout from its frames: the config
     leaves it to a store that does not know it (`for_store`)."""
-    return config.rolling_shutter_readout is None
+    return config.rolling_shutter_readout is None or config.depth_rolling_shutter_readout is None
+
+
+def separate_readouts(config: Config) -> bool:
+    """True when the depth image is read out otherwise than the colour image (or its readout is
+    known where the colour's is not), so that the two are rectified each with its own motion
+    (`frames.prepare_frame`)."""
+    depth = config.depth_rolling_shutter_readout
+    return depth is not None and depth != config.rolling_shutter_readout
 
 
 class StoreFacts(typing.Protocol):
@@ -692,6 +717,7 @@ class StoreFacts(typing.Protocol):
     path: Path
     crop_edge: int
     rolling_shutter_readout: float
+    depth_rolling_shutter_readout: float
 
 
 def coarsest_factor(config: Config) -> int:

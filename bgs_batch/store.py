@@ -14,7 +14,9 @@ Layout::
                  camera; `bgs run` applies it by default; absent = 0),
                  rolling_shutter_readout (seconds over which the camera reads its rows out;
                  the `cpu` preset moves them to one instant; absent = 0, a global shutter;
-                 NaN = unknown: `bgs run` estimates it from the frames)
+                 NaN = unknown: `bgs run` estimates it from the frames),
+                 depth_rolling_shutter_readout (the depth image's, when it differs: absent =
+                 rolling_shutter_readout)
 
 Frames are deflated in worker threads with ISA-L (5x faster than zlib at level 1, and it
 releases the GIL) and written as raw chunks, so conversion uses every core; the files stay plain
@@ -47,6 +49,11 @@ DEFAULT_COMPRESSION_LEVEL = 1  # ISA-L deflate levels are 0-3; 1 is the speed/si
 READ_WORKERS = 2
 MAX_READOUT_S = 1.0  # a row readout of a second or more is no video camera's
 READOUT_UNKNOWN = math.nan  # a camera whose readout nobody gave: `bgs run` estimates it
+
+
+def same_readout(a: float, b: float) -> bool:
+    """Equal readouts, unknown (NaN) ones included."""
+    return a == b or (math.isnan(a) and math.isnan(b))
 READ_PREFETCH = 4
 REQUIRED_ATTRS = (
     "schema_version",
@@ -98,6 +105,7 @@ class StoreMeta:
     crop_edge: int = 0  # recommended border crop (pixels per side); 0: none
     # s over which the rows are read out; 0: a global shutter; READOUT_UNKNOWN: not known
     rolling_shutter_readout: float = 0.0
+    depth_rolling_shutter_readout: float | None = None  # the depth image's; None: the same
     provenance: dict[str, Any] = field(default_factory=dict)
 
 
@@ -285,6 +293,9 @@ class FrameStoreWriter:
         )
         if meta.rolling_shutter_readout:
             f.attrs["rolling_shutter_readout"] = float(meta.rolling_shutter_readout)
+        depth = meta.depth_rolling_shutter_readout
+        if depth is not None and not same_readout(depth, meta.rolling_shutter_readout):
+            f.attrs["depth_rolling_shutter_readout"] = float(depth)
         validate(f, self.tmp)
         f.close()
         commit(self.tmp, self.path)
@@ -348,10 +359,11 @@ def validate(f: h5py.File, path: Path | str) -> None:
     if rgb.ndim == 4 and not 0 <= 2 * crop < min(rgb.shape[1:3]):
         problems.append(f"crop_edge {crop} must be >= 0 and leave part of the "
                         f"{rgb.shape[2]}x{rgb.shape[1]} image")  # fmt: skip
-    readout = float(f.attrs.get("rolling_shutter_readout", 0.0))
-    if not (math.isnan(readout) or 0 <= readout < MAX_READOUT_S):
-        problems.append(f"rolling_shutter_readout {readout} must be >= 0 and below "
-                        f"{MAX_READOUT_S} s, or NaN (unknown)")  # fmt: skip
+    for key in ("rolling_shutter_readout", "depth_rolling_shutter_readout"):
+        readout = float(f.attrs.get(key, 0.0))
+        if not (math.isnan(readout) or 0 <= readout < MAX_READOUT_S):
+            problems.append(f"{key} {readout} must be >= 0 and below {MAX_READOUT_S} s, or NaN "
+                            "(unknown)")  # fmt: skip
     if len(np.atleast_1d(f.attrs["distortion"])) != 5:
         problems.append("distortion must hold 5 coefficients (k1 k2 p1 p2 k3)")
     if "pose_gt" in f:
@@ -415,6 +427,9 @@ class FrameStore:
         self.width, self.height = int(self.attrs["width"]), int(self.attrs["height"])
         self.crop_edge = int(self.attrs.get("crop_edge", 0))  # recommended; stores before it: 0
         self.rolling_shutter_readout = float(self.attrs.get("rolling_shutter_readout", 0.0))
+        # the depth image's readout; stores before it and cameras reading both alike: the same
+        self.depth_rolling_shutter_readout = float(self.attrs.get(
+            "depth_rolling_shutter_readout", self.rolling_shutter_readout))  # fmt: skip
         self.provenance: dict[str, Any] = json.loads(self.attrs["provenance"])
         self._poses = self._file["pose_gt"][()] if "pose_gt" in self._file else None
         self._fast = _is_our_pipeline(self._rgb) and _is_our_pipeline(self._depth)

@@ -10,7 +10,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from bgs_batch.store import FrameStore
+from bgs_batch.store import FrameStore, same_readout
 
 _PINHOLE = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}
 
@@ -34,6 +34,7 @@ class StoreSummary:
     distortion_applied: bool
     crop_edge: int  # recommended border crop, pixels per side (`bgs run` applies it)
     rolling_shutter_readout: float  # s over which the rows are read out (0: global shutter)
+    depth_rolling_shutter_readout: float  # the depth image's (the same unless its sensor differs)
     source_format: str
     source_path: str
     sequence: str
@@ -43,8 +44,9 @@ class StoreSummary:
     def as_dict(self) -> dict[str, Any]:
         """For JSON: an unknown readout (NaN in the store) is null."""
         data = asdict(self)
-        if math.isnan(self.rolling_shutter_readout):
-            data["rolling_shutter_readout"] = None
+        for key in ("rolling_shutter_readout", "depth_rolling_shutter_readout"):
+            if math.isnan(data[key]):
+                data[key] = None
         return data
 
 
@@ -84,6 +86,7 @@ def summarize(store: FrameStore) -> StoreSummary:
         distortion_applied=bool(a["distortion_applied"]),
         crop_edge=store.crop_edge,
         rolling_shutter_readout=store.rolling_shutter_readout,
+        depth_rolling_shutter_readout=store.depth_rolling_shutter_readout,
         source_format=str(a["source_format"]),
         source_path=str(a["source_path"]),
         sequence=str(a["sequence"]),
@@ -114,6 +117,10 @@ def print_summary(summary: StoreSummary, console: Console | None = None) -> None
         "crop": (f"{s.crop_edge} px per border, applied by `bgs run` (--set crop_edge=N "
                  "overrides)" if s.crop_edge else "none recommended"),
         "shutter": _shutter(s.rolling_shutter_readout),
+        **({"depth shutter": _shutter(s.depth_rolling_shutter_readout).replace(
+            "rolling_shutter_readout", "depth_rolling_shutter_readout")}
+           if not same_readout(s.depth_rolling_shutter_readout, s.rolling_shutter_readout)
+           else {}),  # fmt: skip
         "created by": s.created_by,
     }
     rows |= {f"  {key}": str(value) for key, value in sorted(s.provenance.items())}

@@ -117,6 +117,9 @@ class SynthConfig:
     exposure: float = 0.0  # motion blur: colour averaged over this long an exposure ...
     exposure_samples: int = 5  # ... sampled at this many instants
     readout: float = 0.0  # rolling shutter: the rows are read out top to bottom over this long
+    # the depth image's readout when its sensor reads out otherwise (a RealSense D435: global
+    # depth, rolling colour); None: as the colour image's
+    depth_readout: float | None = None
 
     # Scene: room size (x, y, z), furniture per wall, clutter boxes on top of each piece.
     room_size: tuple[float, float, float] = (5.0, 4.0, 2.7)
@@ -185,6 +188,7 @@ MOTIONS: dict[str, dict[str, Any]] = {
 EFFECTS: dict[str, dict[str, Any]] = {
     "blur": {"exposure": 0.5},  # half the frame interval, as indoor auto-exposure gives
     "rolling_shutter": {"readout": 0.9},  # Kinect-class sensors read out over most of a frame
+    "global_shutter_depth": {"depth_readout": 0.0},  # a RealSense D435's depth
     "holes": {"hole_fraction": 0.15, "hole_blobs": 6},  # large dropouts, as on dark or shiny
 }
 
@@ -236,6 +240,10 @@ def validate(config: SynthConfig) -> None:
         0 <= config.exposure <= 1 and 0 <= config.readout <= 1,
         f"exposure and readout must be in [0, 1] frame intervals, got {config.exposure} and "
         f"{config.readout}",
+    )
+    require(
+        config.depth_readout is None or 0 <= config.depth_readout <= 1,
+        f"depth_readout must be in [0, 1] frame intervals, got {config.depth_readout}",
     )
     require(config.exposure_samples >= 2, "exposure_samples must be at least 2")
 
@@ -638,14 +646,18 @@ def _write_sequence(
     path = camera_path(config)
     poses = path(np.arange(config.frames, dtype=np.float64))
     rows, instants = sensor_timing(config)
+    depth_rows = rows if config.depth_readout is None else _rows(config, config.depth_readout)
     depth_lag = config.depth_delay * config.fps  # in frames
     rgb_lines, depth_lines, gt_lines = [], [], []
     for i, pose in enumerate(poses):
         check_interrupted()
         row_times = 0.0 if rows is None else rows
+        depth_row_times = 0.0 if depth_rows is None else depth_rows
         # the depth image is taken at its own time stamp, depth_delay after the colour image's
-        depth_pose = pose if rows is None and not depth_lag else path(i + depth_lag + row_times)
-        exposure = [depth_pose if t == 0 and not depth_lag else path(i + t + row_times)
+        depth_pose = (pose if depth_rows is None and not depth_lag
+                      else path(i + depth_lag + depth_row_times))  # fmt: skip
+        shared = depth_rows is rows and not depth_lag  # colour at t = 0 is read as depth is
+        exposure = [depth_pose if t == 0 and shared else path(i + t + row_times)
                     for t in instants]  # fmt: skip
         rng = np.random.default_rng((config.seed, _SENSOR_STREAM, i))
         rgb, depth, sigma = renderer.render(exposure, depth_pose, rng)
@@ -670,8 +682,10 @@ def _write_sequence(
         header = _TUM_HEADER.format(what=what, seed=config.seed, columns=columns)
         (root / name).write_text(header + "".join(lines))
     (root / "calibration.txt").write_text(" ".join(f"{x:.9f}" for x in config.intrinsics) + "\n")
-    # seconds (0: a global shutter), which `bgs convert tum` records for `bgs run`
-    (root / READOUT_FILE).write_text(f"{config.readout / config.fps:.9f}\n")
+    # seconds (0: a global shutter), which `bgs convert tum` records for `bgs run`: the colour
+    # image's, and the depth image's when it reads out otherwise
+    readouts = [config.readout] + ([] if config.depth_readout is None else [config.depth_readout])
+    (root / READOUT_FILE).write_text(" ".join(f"{r / config.fps:.9f}" for r in readouts) + "\n")
 
 
 def encode_depth_sigma(sigma: np.ndarray) -> np.ndarray:
@@ -693,13 +707,16 @@ def read_depth_sigma(sequence: Path, frame: int) -> np.ndarray:
 def sensor_timing(config: SynthConfig) -> tuple[np.ndarray | None, np.ndarray]:
     """When, relative to a frame's time stamp and in frames, each image row is read (H, 1;
     None for a global shutter) and the instants the colour exposure averages over."""
-    rows = None
-    if config.readout > 0:
-        rows = (np.linspace(-0.5, 0.5, config.height) * config.readout)[:, None]
+    rows = _rows(config, config.readout)
     instants = np.zeros(1)
     if config.exposure > 0:
         instants = np.linspace(-0.5, 0.5, config.exposure_samples) * config.exposure
     return rows, instants
+
+
+def _rows(config: SynthConfig, readout: float) -> np.ndarray | None:
+    """When each row is read (H, 1; frames) over a readout of `readout` frames (None: 0)."""
+    return (np.linspace(-0.5, 0.5, config.height) * readout)[:, None] if readout > 0 else None
 
 
 def _check_replaceable(out_dir: Path, overwrite: bool) -> None:

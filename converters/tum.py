@@ -56,6 +56,7 @@ class Camera:
     crop_edge: int = 0
     crop_edge_source: str = ""
     readout: float = 0.0  # s over which the rows are read out (0: global shutter)
+    depth_readout: float | None = None  # the depth image's, when it differs (None: the same)
 
     @property
     def matrix(self) -> np.ndarray:
@@ -87,6 +88,7 @@ class TumOptions:
     distortion: tuple[float, float, float, float, float] | None = None  # overrides detection
     # s, rolling-shutter readout, overrides detection; READOUT_UNKNOWN: `bgs run` estimates it
     readout: float | None = None
+    depth_readout: float | None = None  # s, the depth image's when it differs; overrides
     undistort: bool = True  # with known, non-zero distortion; False stores the raw images
     depth_scale: float = TUM_DEPTH_SCALE  # units per metre of the depth PNGs
     stride: int = 1
@@ -191,32 +193,38 @@ def detect_camera(folder: Path, options: TumOptions) -> tuple[Camera, dict[str, 
         "intrinsics_source": "--intrinsics" if options.intrinsics else source,
         "distortion_source": "--distortion" if options.distortion else (source or "none (zero)"),
     }
-    readout, provenance["rolling_shutter_readout_source"] = _readout(folder, options, found, source)
-    camera = Camera(tuple(map(float, intrinsics)), tuple(map(float, distortion)), readout=readout)
+    readouts, provenance["rolling_shutter_readout_source"] = _readout(folder, options, found,
+                                                                      source)  # fmt: skip
+    if options.depth_readout is not None:
+        readouts = (readouts[0], float(options.depth_readout))
+        provenance["depth_rolling_shutter_readout_source"] = "--depth-readout"
+    camera = Camera(tuple(map(float, intrinsics)), tuple(map(float, distortion)),
+                    readout=readouts[0], depth_readout=readouts[1])  # fmt: skip
     if found is not None and options.intrinsics is None:  # the calibration's crop comes along
         camera = replace(camera, crop_edge=found.crop_edge, crop_edge_source=found.crop_edge_source)
     return camera, provenance
 
 
 def _readout(folder: Path, options: TumOptions, found: Camera | None, source: str
-             ) -> tuple[float, str]:  # fmt: skip
-    """The rolling-shutter readout (s) and where it came from: ``--readout`` > ``readout.txt``
-    > the published camera's > unknown (`bgs run` estimates it from the frames)."""
+             ) -> tuple[tuple[float, float | None], str]:  # fmt: skip
+    """The rolling-shutter readouts (s) of the colour and the depth image (None: the colour
+    image's) and where they came from: ``--readout`` > ``readout.txt`` (one number, or the
+    colour's and the depth's) > the published camera's > unknown (`bgs run` estimates it)."""
     if options.readout is not None:
         if math.isnan(options.readout):
-            return READOUT_UNKNOWN, "--readout auto: `bgs run` estimates it from the frames"
-        return float(options.readout), "--readout"
+            return (READOUT_UNKNOWN, None), "--readout auto: `bgs run` estimates it from the frames"
+        return (float(options.readout), None), "--readout"
     path = folder / READOUT_FILE
     if path.is_file():
         values = [_parse_float(x, path, 1) for x in path.read_text().split()]
-        if len(values) != 1 or not 0 <= values[0] < MAX_READOUT_S:
-            raise InputError(f"{path}: expected one number of seconds, >= 0 and below "
-                             f"{MAX_READOUT_S}")  # fmt: skip
-        return values[0], READOUT_FILE
+        if len(values) not in (1, 2) or not all(0 <= v < MAX_READOUT_S for v in values):
+            raise InputError(f"{path}: expected seconds, >= 0 and below {MAX_READOUT_S}: the "
+                             "readout of both images, or of the colour then the depth image")
+        return (values[0], values[1] if len(values) == 2 else None), READOUT_FILE
     if found is not None and found.readout:
-        return found.readout, f"{source}: PrimeSense-class rolling shutter"
-    return READOUT_UNKNOWN, ("unknown camera: `bgs run` estimates it from the frames (pass "
-                             "--readout SECONDS, or 0 for a global shutter, to set it)")
+        return (found.readout, None), f"{source}: PrimeSense-class rolling shutter"
+    return (READOUT_UNKNOWN, None), ("unknown camera: `bgs run` estimates it from the frames "
+                                     "(pass --readout SECONDS, or 0 for a global shutter)")
 
 
 @dataclass(frozen=True)
@@ -352,6 +360,7 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
         has_gt=poses is not None,
         crop_edge=crop_edge,
         rolling_shutter_readout=camera.readout,
+        depth_rolling_shutter_readout=camera.depth_readout,
         provenance=provenance,
     )
     notes = (pairs.summary, *_depth_scale_warnings(median_depth, options.depth_scale))
@@ -370,6 +379,9 @@ def _check_options(folder: Path, options: TumOptions) -> None:
     if readout is not None and not (math.isnan(readout) or 0 <= readout < MAX_READOUT_S):
         raise InputError(f"--readout must be auto, or >= 0 and below {MAX_READOUT_S} s, got "
                          f"{readout}")  # fmt: skip
+    depth = options.depth_readout
+    if depth is not None and not 0 <= depth < MAX_READOUT_S:
+        raise InputError(f"--depth-readout must be >= 0 and below {MAX_READOUT_S} s, got {depth}")
 
 
 @dataclass(frozen=True)

@@ -71,6 +71,7 @@ ERROR_FILE = "error.json"
 SENSOR_FILE = "sensor_net.pt"
 GLOBAL_MAP_FILE = "global_map.pt"
 READOUT_FILE = "readout.json"
+READOUT_SETTINGS = ("rolling_shutter_readout", "depth_rolling_shutter_readout")
 SUMMARY_FILE = "summary.json"
 LOG_FILE = "log.jsonl"
 SUBMAP_DIR = "submaps"
@@ -148,8 +149,10 @@ def _run(
     with stop_requests() as stop:
         n = len(store) if max_frames is None else min(max_frames, len(store))
         readout = _readout(store, job_dir, cfg, n) if needs_readout(cfg) else None
-        if readout is not None:
-            cfg = replace(cfg, rolling_shutter_readout=readout.seconds or 0.0)
+        if readout is not None:  # in place of the readouts the store left open
+            found = readout.seconds or 0.0
+            cfg = replace(cfg, **{key: found if getattr(cfg, key) is None else getattr(cfg, key)
+                                  for key in READOUT_SETTINGS})  # fmt: skip
             if stop.requested:  # during the estimate: kept in readout.json, no frame to save
                 raise Preempted(stop.requested, "after the readout estimate", job_dir)
         slam = Slam(cfg, store.intrinsics, job_dir / SUBMAP_DIR)

@@ -167,7 +167,7 @@ def export_handoff(job: FinishedJob, store: FrameStore, frames: list[int], text:
         for index in frames:
             event = job.events[index]
             full: Level = prepare_frame(store[index], store.intrinsics, cfg, event.depth_motion,
-                                        event.readout_motion)[0]  # fmt: skip
+                                        *event.readouts)[0]  # fmt: skip
             camera = full.camera
             depth = full.depth[..., 0].numpy()
             write_png(tmp / IMAGES / file_name(index), rgb_to_bgr8(full.rgb.numpy()))

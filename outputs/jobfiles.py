@@ -66,6 +66,9 @@ class FrameEvent:
     # the second frame the first one's, known only then (`Slam._rectify_first_keyframe`)
     readout_motion: np.ndarray | None = None
     first_readout_motion: np.ndarray | None = None
+    # the same for the depth image, when it is read out apart from the colour image
+    depth_readout_motion: np.ndarray | None = None
+    first_depth_readout_motion: np.ndarray | None = None
 
     @classmethod
     def from_json(cls, event: dict[str, Any]) -> FrameEvent:
@@ -73,7 +76,14 @@ class FrameEvent:
                    str(event["reason"]), event.get("score_color"), event.get("score_depth"),
                    int(event["submap"]), _rigid(event["pose"]), event.get("elapsed_s"),
                    _rigid(event.get("depth_motion")), _rigid(event.get("readout_motion")),
-                   _rigid(event.get("first_readout_motion")))  # fmt: skip
+                   _rigid(event.get("first_readout_motion")),
+                   _rigid(event.get("depth_readout_motion")),
+                   _rigid(event.get("first_depth_readout_motion")))  # fmt: skip
+
+    @property
+    def readouts(self) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The colour and depth readout motions, as `frames.prepare_frame` takes them."""
+        return self.readout_motion, self.depth_readout_motion
 
 
 def _rigid(rows: list[float] | None) -> np.ndarray | None:
@@ -141,8 +151,12 @@ class FinishedJob:
                                  ) from err  # fmt: skip
         if not events or [e.frame for e in events] != list(range(len(events))):
             raise incomplete(self.job_dir, f"{LOG_FILE} does not list frames 0, 1, 2, … in order")
-        if len(events) > 1 and events[1].first_readout_motion is not None:  # the SLAM re-mapped
-            events[0] = replace(events[0], readout_motion=events[1].first_readout_motion)
+        second = events[1] if len(events) > 1 else None
+        if second is not None and (second.first_readout_motion is not None
+                                   or second.first_depth_readout_motion is not None):
+            # the SLAM re-mapped the first keyframe from its rows rectified at the second's
+            events[0] = replace(events[0], readout_motion=second.first_readout_motion,
+                                depth_readout_motion=second.first_depth_readout_motion)
         return events
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:

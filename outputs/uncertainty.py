@@ -149,7 +149,7 @@ class UncertaintyRenderer:
         """Everything of frame `index` (see the module's conventions)."""
         event = self.job.events[index]
         full, mapping = prepare_frame(self.store[index], self.store.intrinsics, self.cfg,
-                                      event.depth_motion, event.readout_motion)  # fmt: skip
+                                      event.depth_motion, *event.readouts)  # fmt: skip
         level = downsample(full, self.downscale)
         height, width = level.rgb.shape[:2]
         u = self.cfg.uncertainty

@@ -31,6 +31,8 @@ def test_version_and_help_teach():
 def test_usage_errors_exit_2():
     assert run("synth", "x", "--size", "640by480").exit_code == 2
     assert run("synth", "x", "--motion", "sprint").exit_code == 2
+    alone = run("synth", "x", "--global-shutter-depth")
+    assert alone.exit_code == 2 and "--rolling-shutter" in alone.output
     assert run("convert", "tum").exit_code == 2
     assert run("nope").exit_code == 2
 
@@ -38,9 +40,10 @@ def test_usage_errors_exit_2():
 def test_synth_motions_and_sensor_effects(tmp_path):
     out = tmp_path / "shaky"
     result = run("-q", "synth", out, "--frames", "3", "--size", "64x48", "--motion", "shake",
-                 "--blur", "--rolling-shutter", "--holes")  # fmt: skip
+                 "--blur", "--rolling-shutter", "--global-shutter-depth", "--holes")  # fmt: skip
     assert result.exit_code == 0, result.output
     assert len(list((out / "rgb").glob("*.png"))) == 3
+    assert len((out / "readout.txt").read_text().split()) == 2  # the colour's, the depth's
 
 
 def test_inspect_rejects_non_stores(tmp_path):

@@ -12,10 +12,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from bgs_batch.config import Config
+from bgs_batch.config import Config, separate_readouts
 from bgs_batch.render import Camera
 from bgs_batch.slam.depth_timing import warp_depth
-from bgs_batch.slam.rolling_shutter import rectify
+from bgs_batch.slam.rolling_shutter import rectify, rectify_colour, rectify_depth
 from bgs_batch.store import Frame
 
 
@@ -30,16 +30,26 @@ class Level:
 
 def prepare_frame(frame: Frame, intrinsics: np.ndarray, cfg: Config,
                   depth_motion: np.ndarray | None = None,
-                  readout_motion: np.ndarray | None = None) -> tuple[Level, Level]:  # fmt: skip
+                  readout_motion: np.ndarray | None = None,
+                  depth_readout_motion: np.ndarray | None = None
+                  ) -> tuple[Level, Level]:  # fmt: skip
     """The frame at input resolution (its depth moved by `depth_motion` to the colour image's
-    time, `depth_timing`; then cropped by ``crop_edge``, depth clipped) and at mapping
+    time, `depth_timing`; its rows moved to one instant by the camera's motion over the
+    readout, `rolling_shutter`: `readout_motion` for both images, or for the colour image
+    alone and `depth_readout_motion` for the depth when the config reads them out apart,
+    `separate_readouts`; then cropped by ``crop_edge``, depth clipped) and at mapping
     resolution: what the SLAM and the exports see of a frame."""
     crop = cfg.crop_edge or 0  # `run_job` puts the store's crop in place of None
     depth = frame.depth
     if depth_motion is not None:
         depth = warp_depth(depth, intrinsics, depth_motion)
     rgb = frame.rgb
-    if readout_motion is not None:
+    if separate_readouts(cfg):
+        if readout_motion is not None:
+            rgb = rectify_colour(rgb, depth, intrinsics, readout_motion)
+        if depth_readout_motion is not None:
+            depth = rectify_depth(depth, intrinsics, depth_readout_motion)
+    elif readout_motion is not None:
         rgb, depth = rectify(rgb, depth, intrinsics, readout_motion)
     rgb, depth = crop_and_clip(rgb, depth, crop, cfg.max_depth)
     full = to_level(rgb, depth, camera_for(intrinsics, rgb.shape[1], rgb.shape[0], crop))

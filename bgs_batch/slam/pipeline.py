@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from bgs_batch.atomic import save_torch
-from bgs_batch.config import Config
+from bgs_batch.config import Config, separate_readouts
 from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.calibration import DepthGains, depth_samples, fit_depth_gains
 from bgs_batch.slam.depth_timing import depth_motion, interval_motion
@@ -70,6 +70,20 @@ def logged_rows(transform: np.ndarray) -> list[float]:
     return [float(x) for x in transform[:3].ravel()]
 
 
+# the camera's motion over a frame's colour readout, and over its depth readout when the two
+# are read out apart (`separate_readouts`); None: nothing to move
+ReadoutMotions = tuple[np.ndarray | None, np.ndarray | None]
+
+
+def _log_motions(event: dict[str, Any], prefix: str, motions: dict[str, np.ndarray | None],
+                 readouts: ReadoutMotions) -> None:  # fmt: skip
+    """Put the motions that move a frame's images into its log event (for the exports)."""
+    named = {**motions, "readout_motion": readouts[0], "depth_readout_motion": readouts[1]}
+    for key, value in named.items():
+        if value is not None:
+            event[prefix + key] = logged_rows(value)
+
+
 @dataclass
 class Slam:
     """An uncertainty-aware Gaussian-splatting SLAM run over one sequence."""
@@ -85,6 +99,8 @@ class Slam:
     depth_motions: dict[int, np.ndarray] = field(default_factory=dict)
     # per frame, the camera's motion over its rows' readout (`rolling_shutter`)
     readout_motions: dict[int, np.ndarray] = field(default_factory=dict)
+    # and over its depth image's, when the two are read out apart (`separate_readouts`)
+    depth_readout_motions: dict[int, np.ndarray] = field(default_factory=dict)
     submaps: list[SubmapRecord] = field(default_factory=list)
     keyframe_frames: list[int] = field(default_factory=list)
     mapping_calls: int = 0
@@ -112,21 +128,19 @@ class Slam:
         self.unrectified_first: Frame | None = None
 
     def prepare(self, frame: Frame, depth_motion: np.ndarray | None = None,
-                readout_motion: np.ndarray | None = None) -> tuple[Level, Level]:  # fmt: skip
+                readouts: ReadoutMotions = (None, None)) -> tuple[Level, Level]:  # fmt: skip
         """The frame at input resolution and at mapping resolution (`frames.prepare_frame`)."""
-        return prepare_frame(frame, self.intrinsics, self.cfg, depth_motion, readout_motion)
+        return prepare_frame(frame, self.intrinsics, self.cfg, depth_motion, *readouts)
 
     def process(self, frame: Frame) -> dict[str, Any]:
         """Track, select and map one frame; return its log event (steps 1-5 of `bgs_batch.slam`)."""
         totals_before = asdict(self.timings)
         motion = self._depth_motion(frame)
-        readout = self._readout_motion()
-        full, level = self.prepare(frame, motion, readout)
+        readouts = self._readout_motions()
+        full, level = self.prepare(frame, motion, readouts)
         event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
         # the exports prepare the frame the same way from the log
-        for key, value in (("depth_motion", motion), ("readout_motion", readout)):
-            if value is not None:
-                event[key] = logged_rows(value)
+        _log_motions(event, "", {"depth_motion": motion}, readouts)
         with self.timings.measure("sensor"), torch.no_grad():
             scale = self.cfg.uncertainty.sensor_downscale
             sensor_c, sensor_d = self.sensor(level, scale)
@@ -134,9 +148,9 @@ class Slam:
         self.poses.append(c2w)
         self.timestamps.append(frame.timestamp)
         if self.unrectified_first is not None and len(self.poses) == 2:
-            readout = self._rectify_first_keyframe(event)
-            full, level = self.prepare(frame, motion, readout)
-            event["readout_motion"] = logged_rows(readout)
+            readouts = self._rectify_first_keyframe(event)
+            full, level = self.prepare(frame, motion, readouts)
+            _log_motions(event, "", {}, readouts)
         elif not self.poses[:-1] and self._readout_active():
             self.unrectified_first = frame
         first_of_submap = not self.active_keyframes
@@ -147,8 +161,7 @@ class Slam:
         event.update(decision.as_dict())
         if motion is not None:
             self.depth_motions[frame.index] = motion
-        if readout is not None:
-            self.readout_motions[frame.index] = readout
+        self._keep_readouts(frame.index, readouts)
         if decision.keyframe:
             self._add_keyframe(frame.index, full, level, c2w, first_of_submap, event)
         event.update(submap=len(self.submaps), gaussians=len(self.gmap),
@@ -167,20 +180,35 @@ class Slam:
         return depth_motion(before2, self.poses[-1], self.timestamps[-1] - self.timestamps[-2],
                             frame.depth_time_offset - cfg.depth_time_lag)  # fmt: skip
 
-    def _readout_active(self) -> bool:
-        return (self.cfg.rolling_shutter_readout or 0.0) > 0  # None: no store resolved it
+    def _readouts(self) -> tuple[float, float]:
+        """The colour and the depth image's readouts (s; None: no store resolved them, 0); the
+        depth's only when it is read out apart (`separate_readouts`), else 0."""
+        cfg = self.cfg
+        depth = cfg.depth_rolling_shutter_readout if separate_readouts(cfg) else None
+        return cfg.rolling_shutter_readout or 0.0, depth or 0.0
 
-    def _readout_motion(self) -> np.ndarray | None:
-        """The camera's motion over the next frame's readout at the last interval's velocity
-        (`rolling_shutter_readout`; None: a global shutter, or no velocity yet)."""
-        readout = self.cfg.rolling_shutter_readout
+    def _readout_active(self) -> bool:
+        return max(self._readouts()) > 0
+
+    def _readout_motions(self) -> ReadoutMotions:
+        """The camera's motion over the next frame's colour readout and, when read out apart,
+        its depth readout, at the last interval's velocity (None: a global shutter, or no
+        velocity yet)."""
         if not self._readout_active() or len(self.timestamps) < 2:
-            return None
+            return None, None
         before2 = self.poses[-2] if self.drifted_prev is None else self.drifted_prev
         interval = self.timestamps[-1] - self.timestamps[-2]
         if not interval > 0:
-            return None
-        return interval_motion(before2, self.poses[-1], readout / interval)
+            return None, None
+        colour, depth = (interval_motion(before2, self.poses[-1], readout / interval)
+                         if readout > 0 else None for readout in self._readouts())  # fmt: skip
+        return colour, depth
+
+    def _keep_readouts(self, index: int, readouts: ReadoutMotions) -> None:
+        for kept, motion in zip((self.readout_motions, self.depth_readout_motions), readouts,
+                                strict=True):  # fmt: skip
+            if motion is not None:
+                kept[index] = motion
 
     def _rectify_first_keyframe(self, event: dict[str, Any]) -> np.ndarray:
         """Once the second frame gives the first velocity, map the first keyframe again from its
@@ -188,15 +216,15 @@ class Slam:
         every rectified frame tracked against it. Returns the readout motion of that velocity,
         which the second frame shares (constant velocity)."""
         first, self.unrectified_first = self.unrectified_first, None
-        readout = self._readout_motion()
-        self.readout_motions[first.index] = readout
-        event["first_readout_motion"] = logged_rows(readout)
-        level = self.prepare(first, self.depth_motions.get(first.index), readout)[1]
+        readouts = self._readout_motions()
+        self._keep_readouts(first.index, readouts)
+        _log_motions(event, "first_", {}, readouts)
+        level = self.prepare(first, self.depth_motions.get(first.index), readouts)[1]
         with self.timings.measure("mapping"):
             self.gmap = GaussianMap()
             self.active_keyframes = [Keyframe(first.index, level, self.poses[0])]
             self.mapper.map(self.gmap, self.active_keyframes, True, self.rng)
-        return readout
+        return readouts
 
     def _track(self, full: Level, sensor_c: torch.Tensor, sensor_d: torch.Tensor,
                event: dict[str, Any]) -> tuple[np.ndarray, float | None, float | None]:  # fmt: skip
@@ -302,6 +330,8 @@ class Slam:
             "timestamps": list(self.timestamps),
             "depth_motions": {i: torch.from_numpy(m) for i, m in self.depth_motions.items()},
             "readout_motions": {i: torch.from_numpy(m) for i, m in self.readout_motions.items()},
+            "depth_readout_motions": {i: torch.from_numpy(m)
+                                      for i, m in self.depth_readout_motions.items()},  # fmt: skip
             "submaps": [asdict(s) for s in self.submaps],
             "keyframe_frames": list(self.keyframe_frames),
             "mapping_calls": self.mapping_calls,
@@ -327,8 +357,9 @@ class Slam:
         self.timestamps = [float(t) for t in state.get("timestamps", [])]
         self.depth_motions = {int(i): np.ascontiguousarray(m.numpy())
                               for i, m in state.get("depth_motions", {}).items()}  # fmt: skip
-        self.readout_motions = {int(i): np.ascontiguousarray(m.numpy())
-                                for i, m in state.get("readout_motions", {}).items()}  # fmt: skip
+        self.readout_motions, self.depth_readout_motions = (
+            {int(i): np.ascontiguousarray(m.numpy()) for i, m in state.get(key, {}).items()}
+            for key in ("readout_motions", "depth_readout_motions"))  # fmt: skip
         self.submaps = [SubmapRecord(**s) for s in state["submaps"]]
         self.keyframe_frames = list(state["keyframe_frames"])
         self.mapping_calls = int(state["mapping_calls"])
@@ -355,7 +386,8 @@ class Slam:
     def prepare_index(self, index: int, read_frame: Callable[[int], Frame]) -> tuple[Level, Level]:
         """Frame `index` from the store, prepared as when it was tracked."""
         return self.prepare(read_frame(index), self.depth_motions.get(index),
-                            self.readout_motions.get(index))  # fmt: skip
+                            (self.readout_motions.get(index),
+                             self.depth_readout_motions.get(index)))  # fmt: skip
 
     def global_stage(self, poses: np.ndarray, read_frame: Callable[[int], Frame]
                      ) -> GlobalMapStage:  # fmt: skip

@@ -69,12 +69,14 @@ class ReadoutEstimate:
 def estimate_readout(read: Callable[[int], Frame], timestamps: np.ndarray,
                      intrinsics: np.ndarray, cfg: Config) -> ReadoutEstimate:  # fmt: skip
     """Estimate the rolling-shutter readout (s) from the first frames of a sequence (module
-    docstring); `read(i)` gives frame i, `timestamps` its time stamps (s)."""
+    docstring); `read(i)` gives frame i, `timestamps` its time stamps (s). The readouts `cfg`
+    leaves open (None) are estimated: both images' as one, or the colour image's alone when
+    the depth image's is known (``depth_rolling_shutter_readout``)."""
     est = cfg.readout_estimation
     n = min(est.frames, len(timestamps))
     if n < 3:
         return _unknown(n, f"{n} frames: too few to see the camera turn")
-    level = _Levels(read, intrinsics, dataclasses.replace(cfg, rolling_shutter_readout=0.0),
+    level = _Levels(read, intrinsics, dataclasses.replace(cfg, rolling_shutter_readout=None),
                     est.min_width)  # fmt: skip
     poses = _chain(level, n, cfg)
     velocities = _angular_velocities(poses, timestamps[:n])
@@ -116,8 +118,10 @@ class _Levels:
                  min_width: int) -> None:  # fmt: skip
         self.read, self.intrinsics, self.cfg, self.min_width = read, intrinsics, cfg, min_width
 
-    def view(self, frame: Frame, readout_motion: np.ndarray | None = None) -> View:
-        full, _ = prepare_frame(frame, self.intrinsics, self.cfg, None, readout_motion)
+    def view(self, frame: Frame, readout_motion: np.ndarray | None = None,
+             depth_readout_motion: np.ndarray | None = None) -> View:  # fmt: skip
+        full, _ = prepare_frame(frame, self.intrinsics, self.cfg, None, readout_motion,
+                                depth_readout_motion)  # fmt: skip
         level = downsample(full, max(1, full.camera.width // self.min_width))
         return View.of(level.rgb, level.depth, level.camera)
 
@@ -173,10 +177,15 @@ def _pair_costs(level: _Levels, poses: np.ndarray, timestamps: np.ndarray, k: in
     """The registration cost of frames j and k, both rectified at each candidate readout."""
     initial = torch.from_numpy(np.linalg.inv(poses[k]) @ poses[j])
     frame_j, frame_k = level.read(j), level.read(k)
+    depth = level.cfg.depth_rolling_shutter_readout  # known, or None: the candidate's
+    depth_motions = [None if depth is None else _readout_motion(poses, timestamps, i, depth)
+                     for i in (j, k)]  # fmt: skip
     costs, scales = [], None
     for readout in candidates:
-        source = level.view(frame_j, _readout_motion(poses, timestamps, j, readout))
-        target = level.view(frame_k, _readout_motion(poses, timestamps, k, readout))
+        source = level.view(frame_j, _readout_motion(poses, timestamps, j, readout),
+                            depth_motions[0])  # fmt: skip
+        target = level.view(frame_k, _readout_motion(poses, timestamps, k, readout),
+                            depth_motions[1])  # fmt: skip
         transform = register(source, target, cfg.registration, initial).transform
         geometric, photometric = residuals(source, target, cfg.registration, transform)
         if scales is None:  # the unrectified pair's, for every candidate

@@ -43,37 +43,68 @@ def row_motions(readout_motion: np.ndarray, height: int) -> tuple[np.ndarray, np
 def rectify(rgb: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
             readout_motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Colour (H, W, 3) uint8 and depth (H, W) float32 m (0 invalid) of a rolling-shutter frame
-    as seen at the middle of its readout (module docstring); pixels whose source falls outside
-    the image are black and invalid."""
-    height, width = depth.shape
-    fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
-    rotations, shifts = row_motions(readout_motion, height)
-    v, u = np.mgrid[:height, :width].astype(np.float64)
+    whose two images are read out alike, as seen at the middle of the readout (module
+    docstring); pixels whose source falls outside the image are black and invalid."""
+    sources = _Sources(depth, intrinsics, readout_motion)
+    return sources.colour(rgb), sources.depth(depth)
 
-    ray_x, ray_y = (u - cx) / fx, (v - cy) / fy
 
-    def image_motion(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        x, y, z = ray_x * z, ray_y * z, z
-        moved = [x * rotations[:, i, 0:1] + y * rotations[:, i, 1:2] + z * rotations[:, i, 2:3]
-                 + shifts[:, i : i + 1] for i in range(3)]  # fmt: skip
-        return fx * moved[0] / moved[2] + cx - u, fy * moved[1] / moved[2] + cy - v
+def rectify_colour(rgb: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
+                   readout_motion: np.ndarray) -> np.ndarray:  # fmt: skip
+    """The colour image alone moved to the middle of its readout (a camera whose colour and
+    depth sensors read out differently, e.g. a RealSense D435's rolling colour and global depth);
+    `depth` only guesses each pixel's distance, which the motion's translation needs."""
+    return _Sources(depth, intrinsics, readout_motion).colour(rgb)
 
-    valid = depth > 0
-    z_guess = np.where(valid, depth, np.median(depth[valid]) if valid.any() else 1.0)
-    du, dv = image_motion(z_guess)
-    near_u = np.clip(np.rint(u - du), 0, width - 1).astype(np.intp)
-    near_v = np.clip(np.rint(v - dv), 0, height - 1).astype(np.intp)
-    du, dv = image_motion(z_guess[near_v, near_u])  # with the source's depth (fixed point)
-    map_u, map_v = u - du, v - dv  # where each rectified pixel's reading came from
-    out_rgb = cv2.remap(rgb, map_u.astype(np.float32), map_v.astype(np.float32),
-                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)  # fmt: skip
-    z_src = _sample_surface(depth, map_u, map_v)
-    src_row = np.clip(np.rint(map_v), 0, height - 1).astype(np.intp)
-    third = rotations[src_row, 2]  # each source row's z axis
-    z_new = (((map_u - cx) / fx * z_src) * third[..., 0] + ((map_v - cy) / fy * z_src)
-             * third[..., 1] + z_src * third[..., 2]) + shifts[src_row, 2]  # fmt: skip
-    out_depth = np.where((z_src > 0) & (z_new > 0), z_new, 0.0).astype(np.float32)
-    return out_rgb, out_depth
+
+def rectify_depth(depth: np.ndarray, intrinsics: np.ndarray, readout_motion: np.ndarray
+                  ) -> np.ndarray:  # fmt: skip
+    """The depth image alone moved to the middle of its readout (see `rectify_colour`)."""
+    return _Sources(depth, intrinsics, readout_motion).depth(depth)
+
+
+class _Sources:
+    """Where each rectified pixel's reading came from in the raw image, and each raw row's
+    motion to the middle of the readout."""
+
+    def __init__(self, depth: np.ndarray, intrinsics: np.ndarray, readout_motion: np.ndarray
+                 ) -> None:  # fmt: skip
+        height, width = depth.shape
+        fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
+        rotations, shifts = row_motions(readout_motion, height)
+        v, u = np.mgrid[:height, :width].astype(np.float64)
+
+        ray_x, ray_y = (u - cx) / fx, (v - cy) / fy
+
+        def image_motion(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            x, y, z = ray_x * z, ray_y * z, z
+            moved = [x * rotations[:, i, 0:1] + y * rotations[:, i, 1:2]
+                     + z * rotations[:, i, 2:3] + shifts[:, i : i + 1]
+                     for i in range(3)]  # fmt: skip
+            return fx * moved[0] / moved[2] + cx - u, fy * moved[1] / moved[2] + cy - v
+
+        valid = depth > 0
+        z_guess = np.where(valid, depth, np.median(depth[valid]) if valid.any() else 1.0)
+        du, dv = image_motion(z_guess)
+        near_u = np.clip(np.rint(u - du), 0, width - 1).astype(np.intp)
+        near_v = np.clip(np.rint(v - dv), 0, height - 1).astype(np.intp)
+        du, dv = image_motion(z_guess[near_v, near_u])  # with the source's depth (fixed point)
+        self.map_u, self.map_v = u - du, v - dv  # where each rectified pixel's reading came from
+        self.rotations, self.shifts, self.intrinsics = rotations, shifts, (fx, fy, cx, cy)
+
+    def colour(self, rgb: np.ndarray) -> np.ndarray:
+        return cv2.remap(rgb, self.map_u.astype(np.float32), self.map_v.astype(np.float32),
+                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)  # fmt: skip
+
+    def depth(self, depth: np.ndarray) -> np.ndarray:
+        fx, fy, cx, cy = self.intrinsics
+        map_u, map_v = self.map_u, self.map_v
+        z_src = _sample_surface(depth, map_u, map_v)
+        src_row = np.clip(np.rint(map_v), 0, depth.shape[0] - 1).astype(np.intp)
+        third = self.rotations[src_row, 2]  # each source row's z axis
+        z_new = (((map_u - cx) / fx * z_src) * third[..., 0] + ((map_v - cy) / fy * z_src)
+                 * third[..., 1] + z_src * third[..., 2]) + self.shifts[src_row, 2]  # fmt: skip
+        return np.where((z_src > 0) & (z_new > 0), z_new, 0.0).astype(np.float32)
 
 
 def _sample_surface(depth: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -281,6 +281,7 @@ def test_images_are_richly_textured(open_seq: Path) -> None:
         {"depth_range": (0.3, 20.0)},
         {"exposure": 1.5},
         {"readout": -0.1},
+        {"depth_readout": 1.5},
         {"shake_rate": -1.0},
         {"exposure": 0.5, "exposure_samples": 1},
     ],
@@ -403,3 +404,13 @@ def test_blur_rolling_shutter_and_holes_change_what_the_sensor_sees(tmp_path: Pa
     change = np.abs(depth(sharp, 3).astype(np.float64) - depth(skewed, 3)) * both
     h = change.shape[0]
     assert change[: h // 8].mean() > 5 * change[h // 2 - 4 : h // 2 + 4].mean()
+    # a global-shutter depth beside the rolling colour (a RealSense D435): the depth image is
+    # the sharp sequence's, the colour image the skewed one's, and readout.txt says both
+    mixed = synthesize(tmp_path / "mixed", motion_config(
+        "shake", ("rolling_shutter", "global_shutter_depth"), **small))  # fmt: skip
+    assert np.array_equal(depth(mixed, 3), depth(sharp, 3))
+    def rgb(seq: Path, k: int) -> np.ndarray:
+        return cv2.imread(str(sorted((seq / "rgb").glob("*.png"))[k]))
+    assert np.array_equal(rgb(mixed, 3), rgb(skewed, 3))
+    assert [float(x) for x in (mixed / "readout.txt").read_text().split()] == [0.03, 0.0]
+    assert [float(x) for x in (skewed / "readout.txt").read_text().split()] == [0.03]

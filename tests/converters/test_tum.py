@@ -313,6 +313,24 @@ def test_the_rolling_shutter_readout_comes_from_the_camera_a_file_or_the_option(
     assert "unknown: `bgs run` estimates" in " ".join(shown.output.split())
     shown = CliRunner().invoke(main, ["inspect", "--json", str(tmp_path / "other.h5")])
     assert json.loads(shown.output)["rolling_shutter_readout"] is None
+    (other / "readout.txt").write_text("0.03 0\n")  # `bgs synth --global-shutter-depth`
+    assert convert(other, tmp_path / "mixed.h5").exit_code == 0
+    with FrameStore(tmp_path / "mixed.h5") as store:  # colour rolling, depth taken at once
+        assert store.rolling_shutter_readout == pytest.approx(0.03)
+        assert store.depth_rolling_shutter_readout == 0
+    assert convert(other, tmp_path / "d435.h5", "--readout", "auto", "--depth-readout", "0"
+                   ).exit_code == 0  # fmt: skip
+    with FrameStore(tmp_path / "d435.h5") as store:
+        assert math.isnan(store.rolling_shutter_readout)
+        assert store.depth_rolling_shutter_readout == 0
+        assert store.provenance["depth_rolling_shutter_readout_source"] == "--depth-readout"
+    shown = CliRunner().invoke(main, ["inspect", str(tmp_path / "d435.h5")]).output
+    shown = " ".join(shown.split())
+    assert "depth shutter │ global" in shown
+    (other / "readout.txt").unlink()
+    with FrameStore(tmp_path / "fr1.h5") as store:  # one readout: the depth image's is the same
+        assert store.depth_rolling_shutter_readout == store.rolling_shutter_readout
+        assert "depth_rolling_shutter_readout" not in store.attrs
     assert convert(fr1, tmp_path / "auto.h5", "--readout", "auto").exit_code == 0
     with FrameStore(tmp_path / "auto.h5") as store:  # a known camera, told to estimate
         assert math.isnan(store.rolling_shutter_readout)
@@ -325,7 +343,7 @@ def test_the_rolling_shutter_readout_comes_from_the_camera_a_file_or_the_option(
 
 
 @pytest.mark.parametrize(("text", "option", "code"), [
-    ("-0.01", None, 3), ("0.01 0.02", None, 3), ("fast", None, 3),
+    ("-0.01", None, 3), ("0.01 0.02 0.03", None, 3), ("0.01 -1", None, 3), ("fast", None, 3),
     (None, "1.5", 2), (None, "-1", 2), (None, "fast", 2), (None, "nan", 2)])  # fmt: skip
 def test_a_bad_readout_is_refused_and_writes_nothing(tmp_path, text, option, code):
     folder = make_tum_folder(tmp_path / "a", frames=2)
@@ -357,3 +375,11 @@ def test_the_summary_names_rgb_images_without_depth(tum_folder, tmp_path):
     result = convert(tum_folder, tmp_path / "s.h5")
     assert result.exit_code == 0, result.output
     assert "6 RGB images, 5 associated (1 without a depth image within 0.02 s;" in result.output
+
+
+@pytest.mark.parametrize("value", ["auto", "-0.1", "2", "x"])
+def test_a_bad_depth_readout_exits_2_and_writes_nothing(tmp_path, value):
+    folder = make_tum_folder(tmp_path / "a", frames=2)
+    result = convert(folder, tmp_path / "s.h5", "--depth-readout", value)
+    assert result.exit_code == 2 and "--depth-readout" in result.output
+    assert not list(tmp_path.glob("s.h5*"))

@@ -1,10 +1,15 @@
 """A rolling-shutter frame moved to one instant (`bgs_batch.slam.rolling_shutter`)."""
 
+import dataclasses
+
 import numpy as np
 from conftest import rigid_pose
 
+from bgs_batch.config import Config, separate_readouts
 from bgs_batch.slam.depth_timing import interval_motion
-from bgs_batch.slam.rolling_shutter import rectify, row_motions
+from bgs_batch.slam.frames import prepare_frame
+from bgs_batch.slam.rolling_shutter import rectify, rectify_colour, rectify_depth, row_motions
+from bgs_batch.store import Frame
 from converters.synthetic import RoomRenderer, SynthConfig, camera_path
 
 
@@ -62,3 +67,47 @@ def test_a_rolling_shutter_render_rectified_matches_the_global_shutter_render():
     colour_error = np.abs(rgb.astype(np.float64) - rgb_gs)[inner].mean()
     colour_raw = np.abs(rgb_rs.astype(np.float64) - rgb_gs)[inner].mean()
     assert colour_error < 0.35 * colour_raw
+
+
+def test_the_two_images_apart_equal_them_together_bit_for_bit():
+    rng = np.random.default_rng(1)
+    rgb = rng.integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    depth = rng.uniform(0.5, 3.0, (24, 32)).astype(np.float32)
+    k = np.array([[40.0, 0, 15.5], [0, 40.0, 11.5], [0, 0, 1]])
+    motion = rigid_pose([1.5, -1.0, 0.4], [0.01, 0.0, 0.004])
+    together = rectify(rgb, depth, k, motion)
+    assert np.array_equal(rectify_colour(rgb, depth, k, motion), together[0])
+    assert np.array_equal(rectify_depth(depth, k, motion), together[1])
+
+
+def test_a_rolling_colour_beside_a_global_depth_is_rectified_colour_only():
+    """A RealSense D435-like camera (`bgs synth --rolling-shutter --global-shutter-depth`): with
+    the depth readout 0, `prepare_frame` moves the colour rows alone; the depth image, taken at
+    once, stays as measured, and the colour comes close to the global-shutter render."""
+    config = SynthConfig(width=160, height=120, frames=10, seed=3)
+    renderer = RoomRenderer(config)
+    middle = camera_path(config)(np.array([4.0]))[0]
+    readout = rigid_pose([1.2, -2.0, 0.6], [0.008, -0.002, 0.005])
+    rotations, shifts = row_motions(readout, config.height)
+    rows = np.tile(np.eye(4), (config.height, 1, 1))
+    rows[:, :3, :3], rows[:, :3, 3] = rotations, shifts
+    colour_rs, _, _ = renderer._shade((middle @ rows)[:, None])
+    colour_gs, z_gs, valid_gs = renderer._shade(middle)
+    fx, fy, cx, cy = config.intrinsics
+    k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    frame = Frame(0, np.clip(np.rint(colour_rs), 0, 255).astype(np.uint8),
+                  np.where(valid_gs, z_gs, 0).astype(np.float32), 0.0, None)
+    cfg = dataclasses.replace(Config(), rolling_shutter_readout=0.03,
+                              depth_rolling_shutter_readout=0.0)  # fmt: skip
+    assert separate_readouts(cfg)
+    full, _ = prepare_frame(frame, k, cfg, None, readout, None)
+    assert np.array_equal(full.depth[..., 0].numpy(), frame.depth)
+    inner = np.zeros(frame.depth.shape, bool)
+    inner[8:-8, 8:-8] = True
+    rgb = (full.rgb.numpy() * 255).astype(np.float64)
+    colour_error = np.abs(rgb - colour_gs)[inner].mean()
+    colour_raw = np.abs(frame.rgb.astype(np.float64) - colour_gs)[inner].mean()
+    assert colour_error < 0.35 * colour_raw
+    alike = dataclasses.replace(cfg, depth_rolling_shutter_readout=0.03)
+    shared, _ = prepare_frame(frame, k, alike, None, readout, None)
+    assert not np.array_equal(shared.depth[..., 0].numpy(), frame.depth)  # both moved: wrong here
