@@ -36,10 +36,10 @@ def test_no_motion_leaves_the_frame_as_it_is():
     assert np.allclose(out_depth, depth, atol=1e-6) and np.array_equal(out_depth == 0, depth == 0)
 
 
-def test_a_rolling_shutter_render_rectified_matches_the_global_shutter_render():
-    """Float64 oracle: the room rendered row by row while the camera turns 2.4° and moves 1 cm
-    over the readout, rectified with that motion, equals the room rendered at the readout's
-    middle by one pose, in depth and in colour, far better than the raw rows do."""
+def rolling_and_global():
+    """A room rendered row by row while the camera turns 2.4° and moves 1 cm over the readout,
+    and at the readout's middle by one pose: (readout motion, K, rolling (colour, z, valid),
+    global (colour, z, valid))."""
     config = SynthConfig(width=160, height=120, frames=10, seed=3)
     renderer = RoomRenderer(config)
     middle = camera_path(config)(np.array([4.0]))[0]
@@ -48,10 +48,16 @@ def test_a_rolling_shutter_render_rectified_matches_the_global_shutter_render():
     rows = np.tile(np.eye(4), (config.height, 1, 1))
     rows[:, :3, :3], rows[:, :3, 3] = rotations, shifts
     rows = (middle @ rows)[:, None]  # (H, 1, 4, 4): one camera-to-world pose per row
-    colour_rs, z_rs, valid_rs = renderer._shade(rows)
-    colour_gs, z_gs, valid_gs = renderer._shade(middle)
     fx, fy, cx, cy = config.intrinsics
     k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    return readout, k, renderer._shade(rows), renderer._shade(middle)
+
+
+def test_a_rolling_shutter_render_rectified_matches_the_global_shutter_render():
+    """Float64 oracle: the room rendered row by row while the camera turns 2.4° and moves 1 cm
+    over the readout, rectified with that motion, equals the room rendered at the readout's
+    middle by one pose, in depth and in colour, far better than the raw rows do."""
+    readout, k, (colour_rs, z_rs, valid_rs), (colour_gs, z_gs, valid_gs) = rolling_and_global()
     rgb_rs = np.clip(np.rint(colour_rs), 0, 255).astype(np.uint8)
     rgb_gs = np.clip(np.rint(colour_gs), 0, 255).astype(np.float64)
     rgb, depth = rectify(rgb_rs, np.where(valid_rs, z_rs, 0).astype(np.float32), k, readout)
@@ -84,17 +90,7 @@ def test_a_rolling_colour_beside_a_global_depth_is_rectified_colour_only():
     """A RealSense D435-like camera (`bgs synth --rolling-shutter --global-shutter-depth`): with
     the depth readout 0, `prepare_frame` moves the colour rows alone; the depth image, taken at
     once, stays as measured, and the colour comes close to the global-shutter render."""
-    config = SynthConfig(width=160, height=120, frames=10, seed=3)
-    renderer = RoomRenderer(config)
-    middle = camera_path(config)(np.array([4.0]))[0]
-    readout = rigid_pose([1.2, -2.0, 0.6], [0.008, -0.002, 0.005])
-    rotations, shifts = row_motions(readout, config.height)
-    rows = np.tile(np.eye(4), (config.height, 1, 1))
-    rows[:, :3, :3], rows[:, :3, 3] = rotations, shifts
-    colour_rs, _, _ = renderer._shade((middle @ rows)[:, None])
-    colour_gs, z_gs, valid_gs = renderer._shade(middle)
-    fx, fy, cx, cy = config.intrinsics
-    k = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    readout, k, (colour_rs, _, _), (colour_gs, z_gs, valid_gs) = rolling_and_global()
     frame = Frame(0, np.clip(np.rint(colour_rs), 0, 255).astype(np.uint8),
                   np.where(valid_gs, z_gs, 0).astype(np.float32), 0.0, None)
     cfg = dataclasses.replace(Config(), rolling_shutter_readout=0.03,
