@@ -15,7 +15,10 @@ over seeds, not only on the dev excerpt it was tried on. The sequences:
   motion blur, a rolling shutter and large depth holes;
 - ``rs-both``, ``rs-mixed``: one shaking room seen by a camera reading both images out over
   0.9 of a frame, and by one whose depth is taken at once beside its rolling colour (a
-  RealSense D435), readouts known;
+  RealSense D435), readouts known; ``reg``, ``misreg``: one handheld room seen by registered
+  cameras, and by a colour camera 6 mm and 1.6° off the depth camera with a 3 % longer focal
+  length (``bgs synth --misregister``); each pair's ATE ratio is printed, with the rigid and
+  scale-aligned ATE;
 - ``v240-auto``, ``v420-auto``, ``hard-auto``: those converted with ``--readout auto``, as a
   camera the converter does not know, so that the run estimates the readout from the frames;
   ``mix-auto``: ``rs-mixed`` with ``--readout auto --depth-readout 0``; ``v240-gs``,
@@ -101,13 +104,17 @@ SYNTHETIC = {  # name: (motion, effects, loop, seed); seeds that no test, preset
     "loop": ("handheld", (), True, 7303),
     "hard": ("shake", ("blur", "rolling_shutter", "holes"), False, 7404),
 }
-# One shaking room seen by a camera reading both images out over 0.9 of a frame, and by one
-# whose depth is taken at once beside its rolling colour (a RealSense D435); readouts known
-SHUTTER_ROOMS = {
+# Pairs of cameras in one room: a shaking room read out alike by both images, and by a camera
+# whose depth is taken at once beside its rolling colour (a RealSense D435), readouts known; a
+# handheld room seen by registered cameras, and by a colour camera 6 mm and 1.6° off the depth
+# camera with a 3 % longer focal length, published with the depth camera's intrinsics
+PAIRED_ROOMS = {
     "rs-both": ("shake", ("rolling_shutter",), False, 7505),
     "rs-mixed": ("shake", ("rolling_shutter", "global_shutter_depth"), False, 7505),
+    "reg": ("handheld", (), False, 7606),
+    "misreg": ("handheld", ("misregister",), False, 7606),
 }
-ROOMS = {**SYNTHETIC, **SHUTTER_ROOMS}
+ROOMS = {**SYNTHETIC, **PAIRED_ROOMS}
 # Sequences above converted as for a camera the converter does not know: the readout left to the
 # run to estimate ("auto"; the D435-like room told only that its depth is a global shutter), or
 # a global shutter ("gs", what `bgs convert` assumed before)
@@ -133,6 +140,7 @@ class SequenceResult:
     o3d_length: float
     o3d_cpu_per_frame: float
     ates: list[float] = field(default_factory=list)
+    scaled_ates: list[float] = field(default_factory=list)  # after a similarity alignment
     rpes: list[float] = field(default_factory=list)
     lengths: list[float] = field(default_factory=list)
     cpu_per_frame: list[float] = field(default_factory=list)
@@ -210,6 +218,7 @@ def run_sequence(name: str, store: Path, root: Path, seeds: range, overrides: li
         _, poses = read_tum(job / "trajectory.txt")
         events = [json.loads(line) for line in (job / LOG_FILE).read_text().splitlines()]
         result.ates.append(summary.ate_rmse_m)
+        result.scaled_ates.append(ate(poses[:, :3, 3], gt[:, :3, 3], with_scale=True)["rmse"])
         result.rpes.append(rpe(poses, gt)["translation_rmse"])
         result.lengths.append(path_length(poses[:, :3, 3]))
         result.cpu_per_frame.append(run.cpu_seconds / n)
@@ -378,10 +387,10 @@ def print_readout_table(results: list[SequenceResult]) -> None:
     rows = [(r, by_name.get(READOUT_VARIANTS[r.name][0]),
              global_shutter.get(READOUT_VARIANTS[r.name][0]))
             for r in results if r.name in READOUT_VARIANTS and r.readouts]  # fmt: skip
-    if "rs-mixed" in by_name and "rs-both" in by_name:
-        print()
-        print(f"Mixed shutters (rolling colour, global depth; readouts known): ATE "
-              f"{mixed_ratio(by_name):.2f}x the same room read out alike (rs-both)")
+    for pair in PAIRS:
+        if all(name in by_name for name in pair):
+            print()
+            print(pair_line(by_name, *pair))
     if not rows:
         return
     print()
@@ -402,9 +411,19 @@ def print_readout_table(results: list[SequenceResult]) -> None:
               f"{auto / known_ate:>11.2f}{gs:>8.2f}")  # fmt: skip
 
 
-def mixed_ratio(by_name: dict[str, SequenceResult]) -> float:
-    """Mean ATE of the D435-like room over the room read out alike."""
-    return statistics.mean(by_name["rs-mixed"].ates) / statistics.mean(by_name["rs-both"].ates)
+PAIRS = (("rs-mixed", "rs-both"), ("misreg", "reg"))
+
+
+def pair_ratio(by_name: dict[str, SequenceResult], name: str, reference: str) -> float:
+    """Mean ATE of `name` over the mean ATE of the same room's `reference` camera."""
+    return statistics.mean(by_name[name].ates) / statistics.mean(by_name[reference].ates)
+
+
+def pair_line(by_name: dict[str, SequenceResult], name: str, reference: str) -> str:
+    r = by_name[name]
+    return (f"{name}: ATE {pair_ratio(by_name, name, reference):.2f}x {reference}'s (same room); "
+            f"rigid {statistics.mean(r.ates) * 100:.2f} cm, scale-aligned "
+            f"{statistics.mean(r.scaled_ates) * 100:.2f} cm")
 
 
 def readout_ms(result: SequenceResult) -> float:
@@ -455,8 +474,8 @@ def summary_line(results: list[SequenceResult]) -> str:
                      f"({worst})")  # fmt: skip
     if missing:
         parts.append(f"readout not estimated on {', '.join(missing)}")
-    if "rs-mixed" in by_name and "rs-both" in by_name:
-        parts.append(f"mixed shutters {mixed_ratio(by_name):.2f}x both rolling")
+    parts += [f"{name} {pair_ratio(by_name, name, reference):.2f}x {reference}"
+              for name, reference in PAIRS if name in by_name and reference in by_name]
     rhos = {r.name: min(r.sigma_rho) for r in results if r.sigma_rho}
     if rhos:
         worst = min(rhos, key=rhos.get)

@@ -341,11 +341,16 @@ def inspect(store: Path, as_json: bool, verify: bool, workers: int) -> None:
               help="With --rolling-shutter: the depth image is taken at once, only the colour "
                    "rows are read out over time (as a RealSense D435's sensors).")
 @click.option("--holes", is_flag=True, help="Large depth holes (15 percent of the image).")
+@click.option("--misregister", is_flag=True,
+              help="A colour camera 6 mm beside the depth camera, turned by 1.6 degrees, its "
+                   "focal length 3 percent longer; calibration.txt gives the depth camera's "
+                   "intrinsics for both, as a pair of cameras never registered to each other.")
 @click.option("--overwrite", is_flag=True, help="Replace OUT_DIR if it exists.")
 @click.pass_context
 def synth(ctx: click.Context, out_dir: Path, frames: int, size: tuple[int, int], seed: int,
           loop: bool, motion: str, blur: bool, rolling_shutter: bool,
-          global_shutter_depth: bool, holes: bool, overwrite: bool) -> None:  # fmt: skip
+          global_shutter_depth: bool, holes: bool, misregister: bool,
+          overwrite: bool) -> None:  # fmt: skip
     """Render a synthetic RGB-D sequence of a textured room, in TUM layout.
 
     Open3D ray casting of a room with furniture, a smooth camera path, Kinect-like depth noise
@@ -369,7 +374,8 @@ def synth(ctx: click.Context, out_dir: Path, frames: int, size: tuple[int, int],
                                "image's readout)")  # fmt: skip
     effects = tuple(name for name, on in (
         ("blur", blur), ("rolling_shutter", rolling_shutter),
-        ("global_shutter_depth", global_shutter_depth), ("holes", holes)) if on)  # fmt: skip
+        ("global_shutter_depth", global_shutter_depth), ("holes", holes),
+        ("misregister", misregister)) if on)  # fmt: skip
     config = motion_config(motion, effects, frames=frames, width=size[0], height=size[1],
                            seed=seed, loop=loop)  # fmt: skip
     with progress_bar("rendering", frames, _show_progress(ctx)) as advance:

@@ -30,6 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 import open3d as o3d
+from scipy.spatial.transform import Rotation
 
 from bgs_batch.atomic import atomic_dir
 from bgs_batch.errors import InputError, OutputExistsError
@@ -120,6 +121,12 @@ class SynthConfig:
     # the depth image's readout when its sensor reads out otherwise (a RealSense D435: global
     # depth, rolling colour); None: as the colour image's
     depth_readout: float | None = None
+    # The colour camera beside the depth camera, never registered to it (what one published set
+    # of intrinsics hides): its pose in the depth camera's frame (rotation vector in degrees,
+    # translation in m) and its focal length over the depth camera's. The ground truth, the
+    # depth image and calibration.txt are the depth camera's
+    colour_offset: tuple[float, float, float, float, float, float] = (0.0,) * 6
+    colour_focal_ratio: float = 1.0
 
     # Scene: room size (x, y, z), furniture per wall, clutter boxes on top of each piece.
     room_size: tuple[float, float, float] = (5.0, 4.0, 2.7)
@@ -189,6 +196,10 @@ EFFECTS: dict[str, dict[str, Any]] = {
     "blur": {"exposure": 0.5},  # half the frame interval, as indoor auto-exposure gives
     "rolling_shutter": {"readout": 0.9},  # Kinect-class sensors read out over most of a frame
     "global_shutter_depth": {"depth_readout": 0.0},  # a RealSense D435's depth
+    # a colour camera 6 mm beside the depth camera, turned by about 1.6°, its focal length 3 %
+    # longer: a pair of cameras published with one set of intrinsics
+    "misregister": {"colour_offset": (0.4, 1.5, 0.3, 0.006, -0.002, 0.001),
+                    "colour_focal_ratio": 1.03},
     "holes": {"hole_fraction": 0.15, "hole_blobs": 6},  # large dropouts, as on dark or shiny
 }
 
@@ -240,6 +251,11 @@ def validate(config: SynthConfig) -> None:
         0 <= config.exposure <= 1 and 0 <= config.readout <= 1,
         f"exposure and readout must be in [0, 1] frame intervals, got {config.exposure} and "
         f"{config.readout}",
+    )
+    require(
+        0.5 <= config.colour_focal_ratio <= 2 and all(map(math.isfinite, config.colour_offset)),
+        f"colour_focal_ratio must be in [0.5, 2] and colour_offset finite, got "
+        f"{config.colour_focal_ratio} and {config.colour_offset}",
     )
     require(
         config.depth_readout is None or 0 <= config.depth_readout <= 1,
@@ -484,11 +500,16 @@ class RoomRenderer:
             box = o3d.geometry.TriangleMesh.create_box(*(hi - lo)).translate(lo)
             self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(box))
         self.faces = _face_table(6 * len(boxes), config, rng)
-        fx, fy, cx, cy = config.intrinsics
-        v, u = np.mgrid[: config.height, : config.width].astype(np.float32)
-        self.rays_cam = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)  # z = 1
+        self.rays_cam = _rays(config, 1.0)  # z = 1
         self.ray_length = np.linalg.norm(self.rays_cam, axis=-1)  # rotations keep it
         self.light = np.asarray(config.light_position, np.float32)
+        # the colour camera's rays and its pose in the depth camera's frame, when apart
+        self.colour = None
+        if config.colour_offset != (0.0,) * 6 or config.colour_focal_ratio != 1.0:
+            offset = np.eye(4)
+            offset[:3, :3] = Rotation.from_rotvec(np.radians(config.colour_offset[:3])).as_matrix()
+            offset[:3, 3] = config.colour_offset[3:]
+            self.colour = (_rays(config, config.colour_focal_ratio), offset)
 
     def render(
         self, exposure: list[np.ndarray], depth_pose: np.ndarray, rng: np.random.Generator
@@ -499,18 +520,26 @@ class RoomRenderer:
         (H, 1, 4, 4) for one pose per image row (rolling shutter)."""
         cfg = self.config
         depth_view, z, valid = self._shade(depth_pose)
-        views = [depth_view if pose is depth_pose else self._shade(pose)[0] for pose in exposure]
+        if self.colour is None:
+            views = [depth_view if pose is depth_pose else self._shade(pose)[0]
+                     for pose in exposure]  # fmt: skip
+        else:  # seen by the colour camera, beside the depth camera
+            rays, offset = self.colour
+            views = [self._shade(pose @ offset, rays)[0] for pose in exposure]
         colour = sum(views[1:], views[0]) / np.float32(len(views)) if len(views) > 1 else views[0]
         noise = rng.standard_normal(colour.shape, dtype=np.float32)
         rgb = np.clip(np.rint(colour + cfg.rgb_noise * noise), 0, 255).astype(np.uint8)
         return rgb, *self._depth(z.astype(np.float64), valid, rng)
 
-    def _shade(self, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Noise-free colour (H, W, 3) in 8-bit levels, depth (m) and depth validity from `pose`."""
+    def _shade(self, pose: np.ndarray, rays: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+        """Noise-free colour (H, W, 3) in 8-bit levels, depth (m) and depth validity from `pose`
+        (through the depth camera's rays, or `rays`)."""
         cfg = self.config
+        rays = self.rays_cam if rays is None else rays
         rotation = pose[..., :3, :3].astype(np.float32)
         # elementwise, not a BLAS product: the same rays on every CPU
-        dirs = sum(self.rays_cam[..., k, None] * rotation[..., :, k] for k in range(3))
+        dirs = sum(rays[..., k, None] * rotation[..., :, k] for k in range(3))
         origin = np.broadcast_to(pose[..., :3, 3].astype(np.float32), dirs.shape)
         hit = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([origin, dirs], -1)))
         hit_ok = np.isfinite(hit["t_hit"].numpy())
@@ -521,7 +550,8 @@ class RoomRenderer:
         face = np.where(hit_ok, 6 * box + 2 * axis + outward, 0)
         z = self._distance(box, outward, axis, origin, dirs, hit_ok)
         point = origin + z[..., None] * dirs
-        normal_dot_ray = np.einsum("...i,...i->...", normal, dirs) / self.ray_length
+        length = self.ray_length if rays is self.rays_cam else np.linalg.norm(rays, axis=-1)
+        normal_dot_ray = np.einsum("...i,...i->...", normal, dirs) / length
         cos_incidence = np.abs(normal_dot_ray)
 
         cos_grazing = np.float32(np.cos(cfg.max_incidence))  # beyond it depth is invalid anyway
@@ -712,6 +742,15 @@ def sensor_timing(config: SynthConfig) -> tuple[np.ndarray | None, np.ndarray]:
     if config.exposure > 0:
         instants = np.linspace(-0.5, 0.5, config.exposure_samples) * config.exposure
     return rows, instants
+
+
+def _rays(config: SynthConfig, focal_ratio: float) -> np.ndarray:
+    """Each pixel's viewing ray (H, W, 3) at z = 1, for a focal length `focal_ratio` times the
+    configured one."""
+    fx, fy, cx, cy = config.intrinsics
+    v, u = np.mgrid[: config.height, : config.width].astype(np.float32)
+    fx, fy = fx * focal_ratio, fy * focal_ratio
+    return np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1)
 
 
 def _rows(config: SynthConfig, readout: float) -> np.ndarray | None:

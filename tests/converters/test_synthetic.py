@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from bgs_batch.errors import InputError, Interrupted, OutputExistsError
 from bgs_batch.geometry import pose_matrix
@@ -414,3 +415,33 @@ def test_blur_rolling_shutter_and_holes_change_what_the_sensor_sees(tmp_path: Pa
     assert np.array_equal(rgb(mixed, 3), rgb(skewed, 3))
     assert [float(x) for x in (mixed / "readout.txt").read_text().split()] == [0.03, 0.0]
     assert [float(x) for x in (skewed / "readout.txt").read_text().split()] == [0.03]
+
+
+def test_a_misregistered_colour_camera_sees_the_room_from_its_own_pose(tmp_path: Path) -> None:
+    """`--misregister`: the depth images are the registered room's; each depth point projected
+    into the colour camera (its offset pose and longer focal length) finds the colour the
+    registered camera saw at that point, while the same pixel does not."""
+    small = {**SMALL, "frames": 2}
+    registered = synthesize(tmp_path / "reg", motion_config("handheld", **small))
+    effect = motion_config("handheld", ("misregister",), **small)
+    moved = synthesize(tmp_path / "mis", effect)
+    def image(seq: Path, folder: str) -> np.ndarray:
+        return cv2.imread(str(sorted((seq / folder).glob("*.png"))[0]), cv2.IMREAD_UNCHANGED)
+    depth = image(moved, "depth").astype(np.float64) / effect.depth_scale
+    assert np.array_equal(image(moved, "depth"), image(registered, "depth"))
+    fx, fy, cx, cy = effect.intrinsics
+    v, u = np.mgrid[: effect.height, : effect.width].astype(np.float64)
+    points = np.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth], -1)
+    offset = effect.colour_offset
+    rotation = Rotation.from_rotvec(np.radians(offset[:3])).as_matrix()
+    in_colour = (points - offset[3:]) @ rotation  # depth camera → colour camera
+    f = effect.colour_focal_ratio
+    cu = fx * f * in_colour[..., 0] / in_colour[..., 2] + cx
+    cv = fy * f * in_colour[..., 1] / in_colour[..., 2] + cy
+    sampled = cv2.remap(image(moved, "rgb"), cu.astype(np.float32), cv.astype(np.float32),
+                        cv2.INTER_LINEAR).astype(np.float64)  # fmt: skip
+    truth = image(registered, "rgb").astype(np.float64)
+    inner = (depth > 0) & (cu > 2) & (cu < effect.width - 3) & (cv > 2) & (cv < effect.height - 3)
+    projected = np.median(np.abs(sampled - truth)[inner])
+    same_pixel = np.median(np.abs(image(moved, "rgb").astype(np.float64) - truth)[inner])
+    assert projected < 4 and same_pixel > 3 * projected
