@@ -123,6 +123,24 @@ def convert() -> None:
     """
 
 
+def _readout_options(default: str) -> Callable[[Callable], Callable]:
+    """``--readout`` and ``--depth-readout`` of a converter whose default is `default`."""
+
+    def add(command: Callable) -> Callable:
+        command = click.option(
+            "--depth-readout", type=Readout(auto=False),
+            help="The depth image's readout when its sensor reads out otherwise than the "
+                 "colour one, e.g. 0 for a RealSense D435's global-shutter depth with "
+                 "--readout auto (or its colour readout). Default: --readout's.")(command)
+        return click.option(
+            "--readout", type=Readout(),
+            help="Seconds over which the camera reads an image's rows out (rolling shutter; "
+                 "0: global shutter), or auto: `bgs run` estimates it from the frames. "
+                 f"Default: {default}. `bgs run` moves the rows to one instant.")(command)
+
+    return add
+
+
 def _conversion_options(command: Callable) -> Callable:
     """The options every `convert` command shares (output, subsampling, robustness, threads)."""
     for option in reversed((
@@ -186,15 +204,7 @@ def _convert_plan(ctx: click.Context, source: Path, output: Path | None, options
               type=click.FloatRange(min=0, min_open=True),
               help="Units per metre of the depth PNGs: 5000 for TUM RGB-D, 1000 (millimetres) "
                    "for most RealSense, Azure Kinect and OpenLORIS exports in this layout.")
-@click.option("--readout", type=Readout(),
-              help="Seconds over which the camera reads an image's rows out (rolling shutter; "
-                   "0: global shutter), or auto: `bgs run` estimates it from the frames. "
-                   "Default: readout.txt, else 0.03 for the freiburg1/2/3 Kinect-class "
-                   "cameras, else auto. `bgs run` moves the rows to one instant.")
-@click.option("--depth-readout", type=Readout(auto=False),
-              help="The depth image's readout when its sensor reads out otherwise than the "
-                   "colour one, e.g. 0 for a RealSense D435's global-shutter depth with "
-                   "--readout auto (or its colour readout). Default: --readout's.")
+@_readout_options("readout.txt, else 0.03 for the freiburg1/2/3 Kinect-class cameras, else auto")
 @_conversion_options
 @click.pass_context
 def convert_tum(ctx: click.Context, folder: Path, output: Path | None, **options) -> None:
@@ -257,6 +267,7 @@ def convert_scannet(ctx: click.Context, path: Path, output: Path | None, **optio
               help="Max RGB-depth header-stamp difference (s) for an association.")
 @click.option("--depth-scale", type=click.FloatRange(min=0, min_open=True),
               help="Units per metre of 16-bit depth [default: RealSense option, else 1000].")
+@_readout_options("auto")
 @_conversion_options
 @click.pass_context
 def convert_bag(ctx: click.Context, path: Path, output: Path | None, **options) -> None:

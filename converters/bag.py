@@ -10,6 +10,7 @@ is opened once for both passes (opening a file-compressed ``.db3`` decompresses 
 
 from __future__ import annotations
 
+import math
 import weakref
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import closing
@@ -22,7 +23,7 @@ import numpy as np
 
 from bgs_batch.errors import InputError
 from bgs_batch.geometry import interpolate_poses
-from bgs_batch.store import StoreMeta
+from bgs_batch.store import READOUT_UNKNOWN, StoreMeta
 from converters.association import associate, association_summary
 from converters.bag_index import (
     BAG_ERRORS,
@@ -65,6 +66,10 @@ class BagOptions:
     tolerance: float = 0.02  # s, max |t_rgb - t_depth| for an association
     gt_max_gap: float = 0.1  # s, max spacing of the two GT samples bracketing a frame
     depth_scale: float | None = None  # units per metre of 16-bit depth; None: detect
+    # s over which the colour (and the depth) image's rows are read out; a bag names no
+    # readout, so the default leaves it to `bgs run` to estimate (READOUT_UNKNOWN)
+    readout: float | None = None
+    depth_readout: float | None = None  # the depth image's, when it differs (None: the same)
     stride: int = 1
     max_frames: int | None = None
 
@@ -123,6 +128,7 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
         depth_scale_source=scale_source,
         stride=options.stride,
         max_frames=options.max_frames,
+        rolling_shutter_readout_source=_readout_source(options),
         **registration_provenance,
         **gt_provenance,
     )
@@ -134,6 +140,8 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
         depth_scale=depth_scale,
         distortion=(camera.distortion + (0.0,) * STORED_DISTORTION_TERMS)[:STORED_DISTORTION_TERMS],
         has_gt=poses is not None,
+        rolling_shutter_readout=READOUT_UNKNOWN if options.readout is None else options.readout,
+        depth_rolling_shutter_readout=options.depth_readout,
         provenance=provenance,
     )
     # the reader's deserialiser keeps its registered types after the reader is closed
@@ -141,6 +149,12 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
     frames = _stream_frames(reader, path, rgb, depth, pairs, stamps, poses, decoder)
     weakref.finalize(frames, reader.close)  # a second pass that never starts
     return BagPlan(frames, len(pairs), meta, (association_note,))
+
+
+def _readout_source(options: BagOptions) -> str:
+    if options.readout is None or math.isnan(options.readout):
+        return "unknown: `bgs run` estimates it from the frames (a bag names no readout)"
+    return "--readout"
 
 
 def _choose_topics(

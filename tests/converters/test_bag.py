@@ -3,6 +3,7 @@ image encoding, the decoders on their own, registration, and every bad input."""
 
 from __future__ import annotations
 
+import math
 import shutil
 import sqlite3
 import tempfile
@@ -206,8 +207,19 @@ def test_realsense_bag_registers_depth_into_colour(realsense_bag, tmp_path):
         assert store.depth_scale == 1000
         registered = store.read_depth_raw(0)
         provenance = store.provenance
+        assert math.isnan(store.rolling_shutter_readout)  # a bag names no readout: estimated
+        assert math.isnan(store.depth_rolling_shutter_readout)
     assert "re-projected" in provenance["registration"]
     assert "RealSense" in provenance["depth_scale_source"]
+    assert "estimates it" in provenance["rolling_shutter_readout_source"]
+    told = tmp_path / "told.h5"  # a D435: rolling colour, global-shutter depth
+    result = convert(realsense_bag, told, "--tolerance", "0.15", "--readout", "auto",
+                     "--depth-readout", "0")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    with FrameStore(told) as store:
+        assert math.isnan(store.rolling_shutter_readout)
+        assert store.depth_rolling_shutter_readout == 0
+    assert convert(realsense_bag, tmp_path / "bad.h5", "--readout", "-1").exit_code == 2
     # the colour camera sees the middle of the wider depth view: nearly every pixel gets depth
     assert (registered > 0).mean() > 0.9
 
