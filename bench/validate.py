@@ -77,13 +77,13 @@ from bgs_batch.config import ConfigError, load_config
 from bgs_batch.metrics import ate, path_length, rpe
 from bgs_batch.slam.frames import Level, downsample
 from bgs_batch.store import READOUT_UNKNOWN, FrameStore
+from bgs_batch.trajectory_files import read_tum
 from bgs_batch.warmup import warm_up
 from converters.synthetic import motion_config, read_depth_sigma, synthesize
 from converters.tum import TumOptions, convert_tum
 from jobs.run import LOG_FILE, RunSummary, run_job
 from outputs.export import METRICS_FILE, ExportOptions, export_job
 from outputs.jobfiles import FinishedJob
-from outputs.trajectory import read_tum
 from outputs.uncertainty import DEPTH_VARIANCES, UncertaintyRenderer, select_frames
 
 from status_page import recorded

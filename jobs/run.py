@@ -42,10 +42,10 @@ from bgs_batch.slam import Slam
 from bgs_batch.slam.global_map import GlobalMapStage
 from bgs_batch.slam.readout import ReadoutEstimate, estimate_readout
 from bgs_batch.store import FrameStore
+from bgs_batch.trajectory_files import write_tum
 from jobs.checkpoint import CHECKPOINT_DIR, load_latest, write_checkpoint
 from jobs.jobdir import check_or_write_record, job_lock, job_record, read_record, set_aside
 from jobs.preemption import Preempted, StopRequest, stop_requests
-from outputs.trajectory import write_tum
 
 
 @dataclass(frozen=True)

@@ -20,9 +20,10 @@ from bgs_batch.errors import InputError
 from bgs_batch.slam.gaussian_map import PARAMS
 from bgs_batch.slam.loop_closure.correction import CORRECTION_KEY
 from bgs_batch.store import FrameStore
+from bgs_batch.trajectory_files import read_tum
 from jobs.jobdir import JOB_FILE, JobError, lock_owner_alive, store_entry
 from jobs.run import GLOBAL_MAP_FILE, LOG_FILE, SENSOR_FILE, SUBMAP_DIR, SUMMARY_FILE
-from outputs.trajectory import match_timestamps, read_tum
+from outputs.trajectory import match_timestamps
 
 TRAJECTORY_FILE = "trajectory.txt"
 CONFIG_FILE = "config.json"

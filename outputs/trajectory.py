@@ -1,8 +1,8 @@
-"""Trajectory files: TUM (``timestamp tx ty tz qx qy qz qw``) and KITTI (3×4 row-major).
+"""The trajectory a user takes away: the estimate in TUM and KITTI files (`bgs_batch.
+trajectory_files`), aligned to the ground truth where there is one, and its ATE.
 
-Poses are camera-to-world (T_world←cam), as evo and the TUM/KITTI tools expect. TUM lines carry
-their own timestamps; KITTI lines do not, so every KITTI file written together by
-`write_trajectories` lists the same frames, in order, and ``times.txt`` gives their timestamps.
+Every KITTI file written together by `write_trajectories` lists the same frames, in order, and
+``times.txt`` gives their timestamps (KITTI lines carry none).
 """
 
 from __future__ import annotations
@@ -12,49 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bgs_batch.geometry import matrix_to_quat_xyzw, pose_matrix
 from bgs_batch.metrics import align_rigid, ate
+from bgs_batch.trajectory_files import write_kitti, write_tum
 
-TUM_HEADER = "# timestamp tx ty tz qx qy qz qw\n"
-TUM_COLUMNS = 8
-KITTI_VALUES = 12  # the first three rows of the 4×4 pose, row-major
 GT_MATCH_TOLERANCE_S = 1e-4  # TUM files keep 6 decimals; looser than that is a different frame
 MIN_ALIGNED_FRAMES = 3  # a rigid alignment needs three non-collinear positions
-
-
-def write_tum(path: Path, timestamps: np.ndarray, c2w: np.ndarray) -> None:
-    """Write poses (N, 4, 4) with their timestamps; rows with NaN poses are left out."""
-    known = np.all(np.isfinite(c2w), axis=(1, 2))
-    quats = matrix_to_quat_xyzw(c2w[known, :3, :3])
-    with open(path, "w") as fh:
-        fh.write(TUM_HEADER)
-        for t, pose, q in zip(timestamps[known], c2w[known], quats, strict=True):
-            values = " ".join(f"{v:.9f}" for v in (*pose[:3, 3], *q))
-            fh.write(f"{t:.6f} {values}\n")
-
-
-def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Timestamps (N,) and camera-to-world poses (N, 4, 4) of a TUM trajectory file."""
-    data = np.loadtxt(path, comments="#", ndmin=2)
-    if data.size and data.shape[1] != TUM_COLUMNS:
-        raise ValueError(f"{path} has {data.shape[1]} columns, TUM has {TUM_COLUMNS}")
-    data = data.reshape(-1, TUM_COLUMNS)
-    return data[:, 0], pose_matrix(data[:, 1:4], data[:, 4:8])
-
-
-def write_kitti(path: Path, c2w: np.ndarray) -> None:
-    """Write poses (N, 4, 4), one line of 12 numbers each; all must be finite (lines are frames)."""
-    if not np.all(np.isfinite(c2w)):
-        raise ValueError("KITTI files have no timestamps: select frames with finite poses first")
-    np.savetxt(path, c2w[:, :3, :].reshape(-1, KITTI_VALUES), fmt="%.9f")
-
-
-def read_kitti(path: Path) -> np.ndarray:
-    """Camera-to-world poses (N, 4, 4) of a KITTI trajectory file."""
-    rows = np.loadtxt(path, ndmin=2)
-    poses = np.tile(np.eye(4), (len(rows), 1, 1))
-    poses[:, :3, :] = rows.reshape(-1, 3, 4)
-    return poses
 
 
 def match_timestamps(query: np.ndarray, reference: np.ndarray,

@@ -19,32 +19,19 @@ set the order.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
-
 import numpy as np
 import torch
 from scipy.optimize import minimize
 
 from bgs_batch.config import UncertaintyConfig
 from bgs_batch.render import Gaussians, render
-
-if TYPE_CHECKING:  # sensor_noise imports DepthGains from here
-    from bgs_batch.slam.mapping import Keyframe
-    from bgs_batch.slam.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.mapping import Keyframe
+from bgs_batch.slam.sensor_noise import DepthGains, SensorNoiseNet
 
 # starts of the fit, as (log10 a, log10 b): its NLL can have more than one minimum, and the
 # lowest of these starts' ends is kept
 STARTS = ((0.0, 0.0), (2.0, 0.0), (0.0, 2.0))
 LOG_BOUND = 30.0  # |ln c|, |ln a|, |ln b| at most: a part absent from the data cannot run away
-
-
-@dataclass(frozen=True)
-class DepthGains:
-    """Multipliers of the map term V_D and of σ²_sensor,D's per-pixel part in the reported Σ_D."""
-
-    map: float = 1.0
-    sensor: float = 1.0
 
 
 def _nll(theta: np.ndarray, r2: np.ndarray, map_var: np.ndarray, sensor_var: np.ndarray

@@ -21,7 +21,7 @@ import torch
 from bgs_batch.atomic import save_torch
 from bgs_batch.config import Config, separate_readouts
 from bgs_batch.slam.adam import Adam
-from bgs_batch.slam.calibration import DepthGains, depth_samples, fit_depth_gains
+from bgs_batch.slam.calibration import depth_samples, fit_depth_gains
 from bgs_batch.slam.depth_timing import depth_motion, interval_motion
 from bgs_batch.slam.frames import Level, prepare_frame
 from bgs_batch.slam.gaussian_map import PARAMS, UNCERTAINTY_KEY, GaussianMap
@@ -34,7 +34,7 @@ from bgs_batch.slam.loop_closure.correction import (
     write_uncertainty,
 )
 from bgs_batch.slam.mapping import Keyframe, Mapper
-from bgs_batch.slam.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.sensor_noise import DepthGains, SensorNoiseNet
 from bgs_batch.slam.smoothing import SmoothingReport, smooth_trajectory
 from bgs_batch.slam.submaps import SubmapRecord, exceeds_motion
 from bgs_batch.slam.tracking import Tracker, constant_velocity

@@ -24,7 +24,6 @@ from torch import nn
 
 from bgs_batch.config import UncertaintyConfig
 from bgs_batch.render import Camera
-from bgs_batch.slam.calibration import DepthGains
 from bgs_batch.slam.frames import Level, block_mean, repeat_blocks
 
 CONV_LAYERS = 4
@@ -32,6 +31,14 @@ PIXEL_LAYERS = 4  # the last one maps to the 2 outputs
 INPUT_CHANNELS = 4  # depth, R, G, B
 OUTPUT_CHANNELS = 2  # colour variance, depth variance (with a prior: its frame mean)
 DEPTH_OUTPUT = 1
+
+
+@dataclass(frozen=True)
+class DepthGains:
+    """Multipliers of the map term V_D and of σ²_sensor,D's per-pixel part in the reported Σ_D."""
+
+    map: float = 1.0
+    sensor: float = 1.0
 
 
 @dataclass(frozen=True)

@@ -18,11 +18,11 @@ from click.testing import CliRunner
 from bgs_batch.cli import main
 from bgs_batch.metrics import align_rigid
 from bgs_batch.store import FrameStore
+from bgs_batch.trajectory_files import read_tum
 from converters.synthetic import SynthConfig, synthesize
 from converters.tum import TumOptions, convert_tum
 from outputs.colmap import DEPTH_AGREEMENT, DEPTH_UNITS_PER_M, OPENGL_FROM_OPENCV
 from outputs.jobfiles import FinishedJob
-from outputs.trajectory import read_tum
 
 SETTINGS = ["tracking.iterations=8", "mapping.iterations=4", "mapping.new_submap_iterations=8",
             "seeding.new_submap_points=2000", "seeding.new_submap_gradient_points=500",

@@ -13,9 +13,9 @@ from plyfile import PlyData
 
 from bgs_batch.cli import main
 from bgs_batch.store import FrameStore
+from bgs_batch.trajectory_files import read_kitti, read_tum, write_tum
 from jobs.jobdir import LOCK_FILE
 from outputs.ply import PROPERTIES, read_ply
-from outputs.trajectory import read_kitti, read_tum, write_tum
 
 
 def run(*args):

@@ -1,16 +1,11 @@
-"""Trajectory files: TUM/KITTI round trips, timestamp matching, aligned estimate and ATE."""
+"""The trajectory a user takes away: timestamp matching, the aligned estimate and its ATE."""
 
 import numpy as np
 import pytest
 
 from bgs_batch.geometry import pose_matrix
-from outputs.trajectory import (
-    match_timestamps,
-    read_kitti,
-    read_tum,
-    write_kitti,
-    write_trajectories,
-)
+from bgs_batch.trajectory_files import read_kitti, read_tum
+from outputs.trajectory import match_timestamps, write_trajectories
 
 
 def random_poses(n, seed=0):
@@ -24,16 +19,6 @@ def world_transform(angle=0.4, translation=(1.0, -2.0, 0.5)):
     out[:3, :3] = [[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]]
     out[:3, 3] = translation
     return out
-
-
-def test_kitti_round_trip_is_row_major(tmp_path):
-    poses = random_poses(5)
-    write_kitti(tmp_path / "t.kitti", poses)
-    first = np.loadtxt(tmp_path / "t.kitti")[0]
-    np.testing.assert_allclose(first, poses[0, :3, :].ravel(), atol=1e-9)
-    np.testing.assert_allclose(read_kitti(tmp_path / "t.kitti"), poses, atol=1e-8)
-    with pytest.raises(ValueError):
-        write_kitti(tmp_path / "bad.kitti", np.full((1, 4, 4), np.nan))
 
 
 def test_match_timestamps():

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from bgs_batch.config import load_config
-from bgs_batch.slam.calibration import DepthGains, fit_depth_gains
-from bgs_batch.slam.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.calibration import fit_depth_gains
+from bgs_batch.slam.sensor_noise import DepthGains, SensorNoiseNet
 from bgs_batch.store import FrameStore
 from converters.synthetic import motion_config, synthesize
 from converters.tum import convert_tum

@@ -19,6 +19,7 @@ from bgs_batch.slam.global_map import (
     visit_order,
 )
 from bgs_batch.store import FrameStore
+from bgs_batch.trajectory_files import read_tum
 from converters.synthetic import SynthConfig, synthesize
 from converters.tum import convert_tum
 from jobs.run import GLOBAL_MAP_FILE, run_job
@@ -26,7 +27,6 @@ from outputs.export import ExportOptions, export_job
 from outputs.image_metrics import psnr
 from outputs.jobfiles import FinishedJob
 from outputs.ply import read_ply
-from outputs.trajectory import read_tum
 
 
 def test_every_nth_frame_but_keyframes_is_held_out_and_the_rest_trains():

@@ -14,11 +14,11 @@ from bgs_batch.config import load_config
 from bgs_batch.slam.loop_closure.correction import transform_params
 from bgs_batch.slam.loop_closure.evaluation import accepted_loops, is_true_loop, submap_frames
 from bgs_batch.store import FrameStore
+from bgs_batch.trajectory_files import read_tum
 from converters.synthetic import SynthConfig, synthesize
 from converters.tum import convert_tum
 from jobs.run import TIMING_FIELDS, run_job
 from outputs.jobfiles import FinishedJob
-from outputs.trajectory import read_tum
 
 SIZE = {"width": 160, "height": 120, "seed": 1, "fps": 10.0, "speed": 0.2}
 LOOP = SynthConfig(frames=41, loop=True, path_radius=0.1, **SIZE)  # two laps of 20 frames

@@ -13,7 +13,6 @@ from bgs_batch.slam.frames import Level, block_mean, downsample, repeat_blocks
 from bgs_batch.slam.gaussian_map import GaussianMap
 from bgs_batch.slam.seeding import backproject, far_from, keyframe_seed_pixels, submap_seed_pixels
 from bgs_batch.slam.submaps import exceeds_motion
-from outputs.trajectory import read_tum, write_tum
 
 K = np.array([[50.0, 0, 15.5], [0, 50.0, 11.5], [0, 0, 1]])
 
@@ -168,12 +167,3 @@ def test_ate_closed_forms():
     gt_nan = gt.copy()
     gt_nan[3] = np.nan
     assert ate(moved, gt_nan)["frames"] == 49
-
-
-def test_tum_trajectory_round_trip(tmp_path):
-    poses = np.stack([pose_matrix([i, 2.0, -1], unit([0.1 * i, 0.2, 0.3, 0.9])) for i in range(4)])
-    poses[2] = np.nan
-    write_tum(tmp_path / "t.txt", np.arange(4) + 0.5, poses)
-    times, back = read_tum(tmp_path / "t.txt")
-    assert times.tolist() == [0.5, 1.5, 3.5]
-    assert np.allclose(back, poses[[0, 1, 3]], atol=1e-8)

@@ -13,11 +13,11 @@ from bgs_batch.cli import main
 from bgs_batch.config import load_config
 from bgs_batch.slam.frames import prepare_frame
 from bgs_batch.store import FrameStore
+from bgs_batch.trajectory_files import read_tum
 from converters.synthetic import SynthConfig, motion_config, synthesize
 from converters.tum import convert_tum
 from jobs.run import run_job
 from outputs.jobfiles import FinishedJob
-from outputs.trajectory import read_tum
 
 CORES = 2
 
