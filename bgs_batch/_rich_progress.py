@@ -44,7 +44,7 @@ def rich_progress(description: str, total: int | None) -> Iterator[Callable[...,
     with Progress(*columns, console=stderr, transient=False) as progress:
         task = progress.add_task(description, total=total, status="")
 
-        def advance(n: int, status: str = "") -> None:
-            progress.update(task, advance=n, status=status)
+        def advance(n: int, status: str = "", total: int | None = None) -> None:
+            progress.update(task, advance=n, status=status, total=total)  # None: kept
 
         yield advance

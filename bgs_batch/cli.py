@@ -608,16 +608,16 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
     """
     from bgs_batch.config import load_config, override_notes
     from bgs_batch.progress import progress_bar
-    from bgs_batch.store import FrameStore
     from jobs.preemption import stop_requests
     from jobs.run import run_job
 
     cfg = load_config(preset, list(overrides))
     for note in override_notes(cfg, list(overrides)):
         click.echo(f"Note: {note}", err=True)
-    with FrameStore(store) as opened:
-        total = len(opened) if max_frames is None else min(max_frames, len(opened))
     keyframes = []
+
+    def on_start(frames: int) -> None:  # the store is open and valid
+        advance(0, total=frames)
 
     def on_frame(event: dict) -> None:
         keyframes.append(event["keyframe"])
@@ -631,9 +631,9 @@ def run(ctx: click.Context, store: Path, job_dir: Path, preset: str, overrides: 
     # from the run's start to the export's end a stop signal is noted, never the default death:
     # the run checkpoints on it, and one that comes after the run stops the export at its start
     with stop_requests():
-        with progress_bar("SLAM", total, _show_progress(ctx)) as advance:
+        with progress_bar("SLAM", None, _show_progress(ctx)) as advance:
             summary = run_job(store, job_dir, cfg, max_frames=max_frames, force=force,
-                              on_frame=on_frame, on_visit=on_visit)  # fmt: skip
+                              on_start=on_start, on_frame=on_frame, on_visit=on_visit)  # fmt: skip
         ate = "n/a (no GT)" if summary.ate_rmse_m is None else f"{summary.ate_rmse_m * 100:.2f} cm"
         click.echo(f"{summary.frames} frames, {summary.keyframes} keyframes, "
                    f"{summary.fps:.2f} fps, ATE RMSE {ate}; outputs in {job_dir}")  # fmt: skip

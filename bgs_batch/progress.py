@@ -14,9 +14,10 @@ from contextlib import contextmanager
 def progress_bar(
     description: str, total: int | None, enabled: bool = True
 ) -> Iterator[Callable[..., None]]:
-    """Yield ``advance(n, status="")``: moves a bar showing count, rate, time left and status."""
+    """Yield ``advance(n, status="", total=None)``: moves a bar showing count, rate, time left
+    and status (`total`, when given, replaces the bar's total: known only once work starts)."""
     if not enabled:
-        yield lambda _n, status="": None
+        yield lambda _n, status="", total=None: None
         return
     from bgs_batch._rich_progress import rich_progress
 

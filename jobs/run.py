@@ -98,10 +98,12 @@ def run_job(
     *,
     max_frames: int | None = None,
     force: bool = False,
+    on_start: Callable[[int], None] | None = None,
     on_frame: Callable[[dict[str, Any]], None] | None = None,
     on_visit: Callable[[int, int], None] | None = None,
 ) -> RunSummary:
     """Run SLAM over the store (or its first `max_frames`) and write the job directory;
+    `on_start(frames)` once the store is open and valid, with the number of frames to run,
     `on_frame(event)` after each frame, `on_visit(done, total)` after each visit of the global
     stage.
 
@@ -115,6 +117,8 @@ def run_job(
     with FrameStore(store_path) as store:  # validated before the job directory is taken
         cfg, sources = for_store(cfg, store)
         check_crop(cfg, store.width, store.height)
+        if on_start is not None:
+            on_start(_frames_to_run(store, max_frames))
         job_dir.mkdir(parents=True, exist_ok=True)
         if force and (moved := set_aside(job_dir)) is not None:
             log.warning("--force: moved the previous run of %s to %s", job_dir, moved)
@@ -147,7 +151,7 @@ def _run(
     document = {"settings": cfg.to_dict(), "sources": sources}
     write_text(job_dir / "config.json", json.dumps(document, indent=2, sort_keys=True))
     with stop_requests() as stop:
-        n = len(store) if max_frames is None else min(max_frames, len(store))
+        n = _frames_to_run(store, max_frames)
         readout = _readout(store, job_dir, cfg, n) if needs_readout(cfg) else None
         if readout is not None:  # in place of the readouts the store left open
             found = readout.seconds or 0.0
@@ -208,6 +212,10 @@ def _run(
     )
     write_text(job_dir / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2))
     return summary
+
+
+def _frames_to_run(store: FrameStore, max_frames: int | None) -> int:
+    return len(store) if max_frames is None else min(max_frames, len(store))
 
 
 def _readout(store: FrameStore, job_dir: Path, cfg: Config, n: int) -> ReadoutEstimate:

@@ -50,6 +50,30 @@ def test_job_json_records_inputs_and_refuses_changes(tmp_path):
     assert not (job / LOCK_FILE).exists()
 
 
+def test_bgs_run_opens_its_store_once_and_learns_the_frame_count_from_the_run(
+        tmp_path, monkeypatch):  # fmt: skip
+    import bgs_batch.store as store_module
+
+    store = tiny_store(tmp_path)
+    opened, started = [], []
+    real_open = store_module.FrameStore.__init__
+
+    def counting_open(self, *args, **kwargs):
+        opened.append(args)
+        real_open(self, *args, **kwargs)
+
+    monkeypatch.setattr(store_module.FrameStore, "__init__", counting_open)
+    result = CliRunner().invoke(main, ["run", str(store), "--job-dir", str(tmp_path / "job"),
+                                       "--max-frames", "2", "--no-export",
+                                       *(f"--set={s}" for s in TINY)])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert len(opened) == 1
+    run_job(store, tmp_path / "other", load_config("cpu", TINY), max_frames=2,
+            on_start=started.append)  # fmt: skip
+    run_job(store, tmp_path / "all", load_config("cpu", TINY), on_start=started.append)
+    assert started == [2, len(store_module.FrameStore(store))]
+
+
 def test_unchanged_store_is_not_hashed_again(tmp_path, monkeypatch):
     import jobs.jobdir as jobdir
 
