@@ -120,7 +120,7 @@ class TrackingConfig:
 @dataclass
 class RegistrationConfig:
     """Tracking's warm start: the measured frame registered to the rendered map by Gauss-Newton
-    on point-to-plane and photometric residuals (`bgs_batch.slam.registration`)."""
+    on point-to-plane and photometric residuals (`bgs_batch.slam.tracking.registration`)."""
 
     downscale: int = 2  # relative to the tracking resolution (the refinement sees that one)
     coarsest_width: int = 24  # px: halve the tracking resolution until this narrow, then go

@@ -60,3 +60,18 @@ def test_every_test_or_bench_file_that_code_and_pages_name_exists():
                       for path in [*CODE, *PAGES] for name in named.findall(path.read_text())
                       if not (ROOT / name).exists()})  # fmt: skip
     assert missing == []
+
+
+@pytest.mark.parametrize("package", ["bgs_batch/slam", "bgs_batch/slam/tracking",
+                                     "bgs_batch/slam/loop_closure"])  # fmt: skip
+def test_a_package_s_step_map_names_every_module_in_it(package):
+    """The docstring of the method's packages is their map: a newcomer finds every module there."""
+    import ast
+
+    folder = ROOT / package
+    doc = ast.get_docstring(ast.parse((folder / "__init__.py").read_text())) or ""
+    named = set(re.findall(r"`([A-Za-z_.]+)`", doc))
+    modules = {p.stem for p in folder.glob("*.py") if p.stem != "__init__"}
+    modules |= {p.parent.name for p in folder.glob("*/__init__.py")}
+    missing = {m for m in modules if not any(n == m or n.startswith(m + ".") for n in named)}
+    assert missing == set(), f"{package}/__init__.py does not name {sorted(missing)}"

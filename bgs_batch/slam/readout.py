@@ -39,7 +39,7 @@ from scipy.spatial.transform import Rotation
 from bgs_batch.config import Config, ReadoutEstimationConfig
 from bgs_batch.slam.depth_timing import interval_motion
 from bgs_batch.slam.frames import downsample, prepare_frame
-from bgs_batch.slam.registration import HUBER_K, MAD_TO_SIGMA, View, register, residuals
+from bgs_batch.slam.tracking.registration import HUBER_K, MAD_TO_SIGMA, View, register, residuals
 from bgs_batch.store import Frame
 
 SCALE_FLOOR = 1e-9  # a residual scale of exactly zero (a perfect synthetic pair) divides nothing

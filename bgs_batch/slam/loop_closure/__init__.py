@@ -14,7 +14,8 @@ At every submap switch the finished submap is the *query*:
    (`correction`).
 
 `LoopCloser` (`closer`) runs this and holds the state a checkpoint needs. `drift` is an
-evaluation lever that injects odometry drift.
+evaluation lever that injects odometry drift; `evaluation` checks a finished job's loops
+against ground truth (tests and benches only: the SLAM never reads ground truth).
 """
 
 from bgs_batch.slam.loop_closure.closer import LoopCloser

@@ -1,4 +1,4 @@
-"""The warm start's dense RGB-D registration (bgs_batch/slam/registration.py)."""
+"""The warm start's dense RGB-D registration (bgs_batch/slam/tracking/registration.py)."""
 
 import math
 
@@ -8,8 +8,8 @@ import torch
 
 from bgs_batch.config import RegistrationConfig
 from bgs_batch.render import Camera
-from bgs_batch.slam import registration_kernels as kernels
-from bgs_batch.slam.registration import View, _Problem, register
+from bgs_batch.slam.tracking import registration_kernels as kernels
+from bgs_batch.slam.tracking.registration import View, _Problem, register
 from converters.synthetic import RoomRenderer, SynthConfig, camera_poses
 
 CONFIG = SynthConfig(width=160, height=120, seed=5, frames=30)

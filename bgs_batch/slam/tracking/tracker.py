@@ -41,8 +41,12 @@ from bgs_batch.slam.losses import (
     tracking_loss,
     tracking_weights,
 )
-from bgs_batch.slam.pose_jacobian import ALPHA_MIN, image_motion_normal_matrix, irls_weights
-from bgs_batch.slam.registration import View, register
+from bgs_batch.slam.tracking.pose_jacobian import (
+    ALPHA_MIN,
+    image_motion_normal_matrix,
+    irls_weights,
+)
+from bgs_batch.slam.tracking.registration import View, register
 
 Variances = tuple[torch.Tensor, torch.Tensor]  # sensor colour [H,W,1], sensor depth [H,W,1]
 Images = tuple[torch.Tensor, ...]  # colour, depth, Σ_C, Σ_D of one render

@@ -28,7 +28,7 @@ import torch
 
 from bgs_batch.config import RegistrationConfig
 from bgs_batch.render import Camera, se3_exp
-from bgs_batch.slam import registration_kernels as kernels
+from bgs_batch.slam.tracking import registration_kernels as kernels
 
 MAD_TO_SIGMA = 1.4826  # the median absolute deviation of a Gaussian is 0.6745 σ
 GEOMETRIC_SCALE_FLOOR_M = 1e-3

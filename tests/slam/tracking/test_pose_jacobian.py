@@ -6,7 +6,7 @@ import torch
 from bgs_batch.config import load_config
 from bgs_batch.render import render, se3_exp
 from bgs_batch.slam import Slam
-from bgs_batch.slam.pose_jacobian import (
+from bgs_batch.slam.tracking.pose_jacobian import (
     ALPHA_MIN,
     image_motion_jacobians,
     image_motion_normal_matrix,

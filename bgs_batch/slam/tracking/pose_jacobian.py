@@ -9,7 +9,7 @@ alpha-normalised depth) moves to ``X + ρ + φ × X``; the render follows it, so
 
 with ``Δu = ∂π/∂X · (ρ + φ × X)`` and ``ΔZ`` its depth component (docs/method.md §6). The L1
 terms ``w |r|`` are majorised by quadratics (iteratively reweighted least squares,
-`irls_weights`). `tracking.Tracker` combines this normal matrix with the
+`irls_weights`). `tracker.Tracker` combines this normal matrix with the
 renderer's exact gradient in trust-region steps, which also correct the majoriser's
 curvature where the loss is flatter or steeper than it says.
 
