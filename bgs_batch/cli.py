@@ -13,6 +13,7 @@ import logging
 import math
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -660,6 +661,60 @@ def _default_export(ctx: click.Context, job_dir: Path) -> None:
         err.args = (f"the run finished, but its export failed: {err}; fix this and run "
                     f"`bgs export {job_dir}` (or pass --no-export)",)  # fmt: skip
         raise
+
+
+@main.command()
+@click.argument("prefix", required=False, default="")
+@click.option("--preset", type=click.Choice(["cpu", "paper"]), default="cpu", show_default=True,
+              help="Show the values of this preset.")  # fmt: skip
+def settings(prefix: str, preset: str) -> None:
+    """List the settings `bgs run --set KEY=VALUE` takes: each key with its value under the
+    preset (and the other preset's, where it differs), what it accepts and what it does.
+
+    PREFIX keeps the keys that start with it (a section such as `tracking`, or one key).
+
+    \b
+    Example:
+      bgs settings tracking                 # the tracker's settings under the cpu preset
+      bgs settings global_map.passes --preset paper
+    """
+    from bgs_batch.config import PRESETS, SETTINGS, accepted_values, load_config, override_notes
+
+    keys = [key for key in SETTINGS if key.startswith(prefix)]
+    if not keys:
+        names = sorted({key.split(".")[0] for key in SETTINGS})
+        raise click.BadParameter(f"no setting starts with {prefix!r}; the settings and sections "
+                                 f"are {', '.join(names)}", param_hint="PREFIX")  # fmt: skip
+    configs = {name: _flat_settings(load_config(name)) for name in PRESETS}
+    for key in keys:
+        value = configs[preset][key]
+        others = [f"{name}: {_show(flat[key])}" for name, flat in configs.items()
+                  if name != preset and flat[key] != value]  # fmt: skip
+        click.echo(f"{key} = {_show(value)}" + (f" ({'; '.join(others)})" if others else "")
+                   + f"  [{accepted_values(key)}]")  # fmt: skip
+        click.echo(f"    {SETTINGS[key].metadata['doc']}")
+        for note in override_notes(load_config(preset), [f"{key}="]):
+            click.echo(f"    note: {note}")
+
+
+def _flat_settings(config: Any) -> dict[str, Any]:
+    """Every setting's value in `config`, by key."""
+    from bgs_batch.config import SETTINGS
+
+    flat = {}
+    for key in SETTINGS:
+        owner = config
+        for part in key.split("."):
+            owner = getattr(owner, part)
+        flat[key] = owner
+    return flat
+
+
+def _show(value: Any) -> str:
+    """A setting's value as `--set` takes it."""
+    if value is None:
+        return "none"
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 @main.command()

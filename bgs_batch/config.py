@@ -23,366 +23,6 @@ class ConfigError(BgsError):
     exit_code = 2
 
 
-@dataclass
-class UncertaintyConfig:
-    """Predictive variance (paper §III-A, §III-D; docs/method.md §2-4)."""
-
-    initial_logit: float = -7.0  # r_i; v_i = softplus(r_i) ≈ 9.1e-4
-    map_floor: float = 1e-3  # added to the rendered V_C, V_D
-    unobserved_alpha: float = 0.6  # pixels with A below this are "unobserved" ...
-    unobserved_variance: float = 100.0  # ... and get this variance (no gradient)
-    full_grad: bool = False  # False: the authors' gradient (T_i² held constant)
-    sensor_hidden: int = 32  # channels of the sensor-noise network
-    sensor_min: float = 1e-4  # softplus output + this floor
-    sensor_initial: float = 0.0  # untrained output; 0: PyTorch's default init (the authors')
-    sensor_lr: float = 1e-4  # Adam, trained in mapping only
-    sensor_downscale: int = 1  # CPU lever: evaluate the network this many times coarser
-    # "none": the network predicts σ²_sensor,D itself (the paper). "nguyen": σ²_sensor,D is
-    # Nguyen et al.'s (2012) Kinect noise model of the measured depth, σ = a + b(z − z0)² +
-    # c/√z · θ²/(π/2 − θ)² with θ the surface's tilt from the depth's local slope, plus the
-    # frame's mean of the network's depth output: the physics ranks the pixels, the network
-    # learns the level (docs/method.md §3; the `cpu` preset's choice, docs/experiments.md)
-    sensor_prior: Literal["none", "nguyen"] = "none"
-    nguyen_a: float = 0.0012  # m
-    nguyen_b: float = 0.0019  # m⁻¹
-    nguyen_z0: float = 0.4  # m
-    nguyen_c: float = 0.0001  # m^1.5
-    # At the end of a run, fit each frozen submap's r_i (Adam at `refine_lr`) and the sensor
-    # network by NLL_C + NLL_D (Eq. 13, 14) over the submap's keyframes for this many passes,
-    # the geometry and colours fixed (0: off, as the authors' SLAM). Why: within mapping's
-    # budget r_i hardly moves (see mapping.lr_uncertainty), and the authors measure AUSE on a
-    # map re-trained with the NLL for 30k iterations; this gives the map term its iterations
-    refine_passes: int = 0
-    refine_lr: float = 0.05
-    # At the end of a run (after the refinement), fit the gains a, b of Σ_D's map term and of
-    # its sensor term's per-pixel part by the Gaussian NLL (Eq. 14) of the keyframes' depth
-    # residuals, without the floors, which hide the two parts' relative scale from the NLL;
-    # the reports use σ²_sensor,D (that part × b) + a·V_D + floor (`slam.calibration`)
-    calibrate: bool = False
-    calibration_pixels: int = 500_000  # at most this many residuals, spread over the keyframes
-
-
-@dataclass
-class TrackingConfig:
-    """Uncertainty-normalised L1 tracking (paper Eq. 15-17; docs/method.md §6)."""
-
-    iterations: int = 200
-    rot_lr: float = 0.002
-    trans_lr: float = 0.01
-    lambda_color: float = 900.0
-    lambda_depth: float = 900.0
-    # "paper":   λ_c Σ|r_C|/√Σ_C + λ_d Σ|r_D|/√Σ_D
-    # "authors": 0.6 Σ|r_C|/√(λ_c Σ_C) + 0.4 Σ|r_D|/√(λ_d Σ_D)
-    loss_form: Literal["paper", "authors"] = "paper"
-    authors_color_weight: float = 0.6
-    downscale: int = 1  # track on images downsampled by this factor
-    coarse_levels: int = 0  # extra pyramid levels (×2 each) optimised coarse to fine first
-    coarse_fraction: float = 0.0  # share of the iterations spent on the coarse levels
-    # Adam stops when the best loss improved by less than this share of it over
-    # `early_stop_patience` iterations (0 disables); Gauss-Newton when its model predicts the
-    # next step gains less than this share
-    early_stop_rel: float = 0.0
-    early_stop_patience: int = 0
-    # each finer level's rates are this many times the coarser one's (1: the same everywhere),
-    # since Adam's first steps are about lr in size whatever is left to correct; no preset uses
-    # it: more precise frame to frame, worse over a sequence (docs/experiments.md)
-    level_lr_factor: float = 1.0
-    # LoopSplat's init_err_ratio: a frame whose loss at the initial pose exceeds this many times
-    # the median best loss of the frames tracked before (both at the coarsest level) gets twice
-    # the iterations on every level (0 disables); off, as in the authors' code, since it did
-    # not help on fr1/rpy (docs/experiments.md)
-    init_err_ratio: float = 0.0
-    # Where the pose update's rotation turns the camera: about the point on the optical axis at
-    # this fraction of the frame's median measured depth (exp(ξ) conjugated by that shift).
-    # 0: the camera centre, the left perturbation exp(ξ)·w2c of the paper's and LoopSplat's
-    # trackers. About the centre, a turn and a sideways shift move the image alike, and Adam's
-    # per-coordinate steps (1 cm against 0.11°) explain a fast turn by a shift first, then creep
-    # along that valley; about a point in the scene a rotation moves the image mostly by
-    # parallax, so the two trade less. No preset uses it: the drift over a sequence did not
-    # fall (docs/experiments.md)
-    pivot_depth_ratio: float = 0.0
-    # Start each frame from the constant-velocity pose refined by dense RGB-D registration of
-    # the measured frame to the map rendered there (`registration`), falling back to constant
-    # velocity when it is not trusted; the paper's loss still decides the pose (docs/method.md §6)
-    warm_start: bool = False
-    # after a trusted warm start: this many iterations at tracking resolution only (0: the
-    # usual pyramid and budget)
-    warm_iterations: int = 0
-    # how the pose descends the loss: "adam" (the paper's and LoopSplat's Adam at trans_lr /
-    # rot_lr, with early stopping) or "gauss_newton" (trust-region steps from the renderer's
-    # exact gradient and the image-motion normal matrix, `slam.pose_jacobian`), used after a
-    # trusted warm start only: from a start far off (3° without one) it can settle centimetres
-    # away where Adam's fixed-size steps walk back, so such frames keep Adam
-    optimizer: Literal["adam", "gauss_newton"] = "adam"
-    gn_converged: float = 1e-4  # stop once a step's |ξ| (m and rad) is this small
-
-
-@dataclass
-class RegistrationConfig:
-    """Tracking's warm start: the measured frame registered to the rendered map by Gauss-Newton
-    on point-to-plane and photometric residuals (`bgs_batch.slam.tracking.registration`)."""
-
-    downscale: int = 2  # relative to the tracking resolution (the refinement sees that one)
-    coarsest_width: int = 24  # px: halve the tracking resolution until this narrow, then go
-    # coarse to fine (a wide basin at the top; 160 px wide frames get 4 levels, 320 px 5)
-    iterations: int = 10  # Gauss-Newton steps per level at most ...
-    converged: float = 1e-5  # ... fewer once a step's |ξ| (m and rad) is this small
-    max_distance: float = 0.07  # m; a point further from the rendered surface is not associated
-    min_alpha: float = 0.9  # rendered pixels with less alpha are not map (no surface there)
-    min_fitness: float = 0.5  # share of the frame's depth associated; below: constant velocity
-    max_shift: float = 0.1  # m from the constant-velocity pose ...
-    max_turn_deg: float = 10.0  # ... and degrees: a larger correction is not trusted
-
-
-@dataclass
-class MappingConfig:
-    """Keyframe mapping: L_3DGS + γ(NLL_C + NLL_D) (paper Eq. 12-14; docs/method.md §5)."""
-
-    iterations: int = 100
-    new_submap_iterations: int = 100
-    current_frame_share: float = 0.4  # probability of sampling the current keyframe
-    gamma: float = 1e-3  # paper; the authors' code uses 1e-4
-    ssim_weight: float = 0.2
-    pruning_threshold: float = 0.5  # opacity, pruned at half and at the end of a round
-    downscale: int = 1
-    lr_means: float = 1e-4
-    lr_colors: float = 2.5e-3
-    lr_opacity: float = 0.05
-    lr_scales: float = 5e-3
-    lr_rotations: float = 1e-3
-    # the authors' feature_lr for r_i; v_i hardly learns at it in the cpu budget, but faster
-    # rates cost tracking more than they help the ranking (docs/experiments.md), so the
-    # end-of-run refinement (uncertainty.refine_passes) trains it instead
-    lr_uncertainty: float = 2.5e-3
-
-
-@dataclass
-class SeedingConfig:
-    """Where new Gaussians come from (LoopSplat's rules, docs/method.md §5)."""
-
-    new_submap_points: int = 100_000  # uniform random pixels of a submap's first frame
-    new_submap_gradient_points: int = 50_000  # sampled ∝ colour gradient magnitude
-    new_frame_points: int = 30_000  # cap for later keyframes
-    alpha_threshold: float = 0.6  # later keyframes: seed where A < this ...
-    depth_error_factor: float = 40.0  # ... or depth error > factor × median error
-    min_distance: float = 0.01  # m; candidates closer to an existing Gaussian are dropped
-    depth_push: float = 1.005  # seeds sit 0.5 % behind the surface
-    initial_opacity: float = 0.5
-
-
-@dataclass
-class SubmapConfig:
-    """When a new submap starts (LoopSplat's rule, docs/method.md §8)."""
-
-    mode: Literal["motion", "interval"] = "motion"
-    max_translation: float = 0.5  # m from the submap's first frame
-    max_rotation_deg: float = 50.0
-    # "angle": the rotation angle itself (axis-order free; never below any single Euler angle,
-    # so it switches no later); "euler": any of roll, pitch, yaw of R = R_z R_y R_x exceeds
-    # the threshold, LoopSplat's test (fewer submaps, so fewer loops: docs/experiments.md)
-    rotation_measure: Literal["angle", "euler"] = "angle"
-    every: int = 50  # frames, for mode "interval"
-
-
-@dataclass
-class KeyframeConfig:
-    """Predictive-surprise keyframe selection (paper §III-C)."""
-
-    mode: Literal["surprise", "every"] = "surprise"
-    threshold: float = 0.0  # K
-    max_gap: int = 5  # fallback: a keyframe at least every N frames
-
-
-# --- loop closure -----------------------------------------------------------------------------
-@dataclass
-class LoopClosureConfig:
-    """Loop closure over submaps (docs/method.md §8; `bgs_batch.slam.loop_closure`).
-
-    At every submap switch: ORB bag-of-words place recognition over keyframes (the vocabulary is
-    learnt online, no weights are downloaded), geometric verification (3-D/3-D RANSAC on depth),
-    render-based registration weighted by the predictive uncertainty (ICP as fallback), Open3D
-    pose-graph optimisation and rigid correction of submaps and poses.
-    """
-
-    enabled: bool = True
-    descriptor: Literal["orb", "netvlad"] = "orb"  # netvlad: not supported yet (clear error)
-    netvlad_weights: str = ""  # user-supplied NetVLAD weights file, for descriptor=netvlad
-    final: bool = False  # also close loops after the last frame (LoopSplat's lc.final)
-    # the trajectory's loop correction: "rigid" (LoopSplat's: each submap's frames move with
-    # its submap, so the difference of two neighbours' corrections is a jump between two
-    # frames) or "continuous" (interpolated between the submaps' centre frames, as a pose
-    # graph over every frame would spread it; `loop_closure.correction.continuous_poses`)
-    trajectory_correction: Literal["rigid", "continuous"] = "rigid"
-    # place recognition (LoopSplat: skipped below 4 submaps, min_interval 3 on TUM)
-    min_submaps: int = 4  # finished submaps before detection starts
-    min_interval: int = 3  # a candidate is more than this many submaps older than the query
-    self_similarity: float = 0.5  # threshold: a query keyframe's k-th best similarity to the n
-    # other keyframes of its submap, k = max(int(n · this), 1) (≈ median; LoopSplat's value)
-    max_candidates: int = 2  # best candidate submaps registered per switch
-    orb_features: int = 500  # per keyframe, on the input image
-    orb_patch: int = 31  # patch size and border of ORB (smaller for tiny images)
-    orb_levels: int = 4
-    orb_scale: float = 1.2
-    orb_fast_threshold: int = 20
-    vocabulary_words: int = 256  # binary k-majority clusters, trained on descriptors seen so far
-    vocabulary_iterations: int = 8
-    vocabulary_samples: int = 20_000  # descriptors used per training (evenly spaced)
-    vocabulary_growth: float = 2.0  # retrain when the descriptors seen grew by this factor
-    # geometric verification: descriptor matches of keyframe pairs, rigid RANSAC on depth
-    verify_pairs: int = 3  # most similar keyframe pairs tried per candidate
-    match_ratio: float = 0.8  # Lowe's ratio test on Hamming distances (and mutual best)
-    ransac_iterations: int = 256
-    ransac_threshold: float = 0.05  # m, 3-D inlier distance
-    min_inliers: int = 15
-    min_inlier_ratio: float = 0.25
-    overlap_radius: float = 0.1  # m; overlap gate on Gaussian centres (LoopSplat: 0.32 m) ...
-    min_overlap: float = 0.2  # ... share of query centres near the candidate's (LoopSplat 0.2)
-    # render-based registration: query keyframes tracked in the candidate submap (Tracker loss)
-    viewpoints: int = 2  # query keyframes localised and fused
-    # uncertainty: Σ|r|/√Σ with our predictive variances; uniform: a constant variance instead
-    # (LoopSplat's unweighted L1, for comparison)
-    weighting: Literal["uncertainty", "uniform"] = "uncertainty"
-    iterations: int = 40  # from the RANSAC estimate: a few cm off, fewer than tracking
-    rot_lr: float = 0.015  # LoopSplat: 3 × base lr 5e-3
-    trans_lr: float = 0.005
-    downscale: int = 1  # relative to the mapping resolution
-    coarse_levels: int = 1
-    coarse_fraction: float = 0.4
-    early_stop_rel: float = 1e-3
-    early_stop_patience: int = 5
-    min_coverage: float = 0.3  # share of valid-depth pixels the candidate renders (alpha gate)
-    inlier_depth: float = 0.05  # m; a covered pixel agrees when |D̂ − D| is below this ...
-    min_depth_inliers: float = 0.6  # ... and this share of covered pixels must agree
-    max_disagreement_m: float = 0.1  # a viewpoint this far from the RANSAC estimate diverged
-    max_disagreement_deg: float = 5.0
-    # geometric fallback: point-to-plane ICP on Gaussian centres
-    icp_max_distance: float = 0.05  # m
-    icp_iterations: int = 30
-    icp_min_fitness: float = 0.3
-    icp_max_rmse: float = 0.02  # m
-    icp_normal_neighbours: int = 16
-    max_points: int = 20_000  # Gaussian centres per submap for ICP, overlap and information
-    # pose graph (Open3D, Levenberg-Marquardt; LoopSplat's values)
-    max_correspondence_distance: float = 0.03  # m; information matrices and line process
-    edge_prune_threshold: float = 0.25
-    preference_loop_closure: float = 5.0  # Open3D reconstruction system, registration loops
-    information_prior: float = 1.0  # added to every edge's information diagonal (no overlap)
-    # evaluation lever (tests, bench/loop_closure.py): odometry drift injected at every submap
-    # switch, a rotation about the world y axis through the camera plus a shift along its x
-    # axis; works with loop closure on or off; keep 0 for real runs
-    inject_drift_deg: float = 0.0
-    inject_drift_m: float = 0.0
-
-
-# --- end loop closure ----------------------------------------------------------------------------
-
-
-@dataclass
-class SmoothingConfig:
-    """Fixed-interval smoothing of the reported trajectory (`bgs_batch.slam.smoothing`): a
-    constant-velocity model whose noise ratio is the tracked trajectory's own maximum-likelihood
-    value, searched over log10(q / r) (q in units²/s³, r in units²) on this grid."""
-
-    enabled: bool = False
-    log_ratio_min: float = -2.0  # a smooth path even at 1 s scales ...
-    log_ratio_max: float = 10.0  # ... to no smoothing at 30 frames/s (q·dt³/3 ≫ r)
-    log_ratio_step: float = 0.25
-
-
-@dataclass
-class GlobalMapConfig:
-    """The end-of-run global map (docs/method.md §8c; `bgs_batch.slam.global_map`): the
-    corrected submaps merged where each owns the surface, then optimised at the reported poses
-    on every frame but the held-out ones, by the mapping loss (Eq. 12-14)."""
-
-    # over the training frames, in a seeded random order, one Adam step per visit (0: the
-    # merged map as it is); the reference systems train their merged map 10k-30k iterations
-    passes: float = 2.0
-    # every N-th frame that is not a keyframe is held out of the stage and scored by `bgs eval`
-    # on views the map never trained on (0: none held out)
-    hold_out_every: int = 8
-    downscale: int = 1  # render at input resolution / this (1: full resolution)
-    # merge: a Gaussian lies on another submap's surface where that submap's rendered depth is
-    # within this share of the Gaussian's own depth, and covers it where its alpha reaches ...
-    merge_depth_tolerance: float = 0.05
-    merge_min_alpha: float = 0.9
-    # at the end, Gaussians below this opacity go (Gaussian-SLAM's global refinement value)
-    pruning_threshold: float = 0.005
-    checkpoint_every: int = 100  # visits between the job's checkpoints (and on a stop signal)
-
-
-@dataclass
-class ReadoutEstimationConfig:
-    """The rolling-shutter readout estimated from the first frames when the store does not know
-    the camera (`bgs convert … --readout auto`; `bgs_batch.slam.readout`, docs/method.md §6)."""
-
-    frames: int = 120  # the first frames searched for turns
-    pairs: int = 8  # frame pairs scored, those whose turning differs most
-    min_pairs: int = 4  # fewer informative pairs: no estimate (a global shutter is kept)
-    max_gap: int = 8  # frames between the two of a pair
-    # rad/s by which a pair's angular velocities differ at least: the shear a readout leaves
-    # differs only between frames that turn differently
-    min_turn_change: float = 0.1
-    candidates: int = 11  # readouts scored, evenly from 0 to one frame interval
-    # the frames are registered at the largest integer downscale leaving this many pixels
-    # across (after the crop): 640 → 320, fr1's 540 → 270, 320 → 320; at 160 px the
-    # estimate came out 16 % low on the synthetic hard room, at 320 px 7 % (docs/experiments.md)
-    min_width: int = 256
-    # no estimate when the pairs' mean cost (each normalised by its minimum) varies by less
-    # than this over the candidates (the frames cannot tell the readouts apart), or when the
-    # standard error of the pairs' own minima exceeds this share of a frame interval
-    min_contrast: float = 0.2
-    max_standard_error: float = 0.1
-
-
-@dataclass
-class Config:
-    """A whole SLAM run."""
-
-    seed: int = 0
-    # threads of the numba kernels; results never depend on it (torch always runs two,
-    # `jobs.run.TORCH_THREADS`)
-    threads: int = 2
-    # pixels removed at every image border before anything else; None: the store's recommended
-    # crop (`bgs inspect` shows it; the reference systems' crop for the camera, else 0)
-    crop_edge: int | None = None
-    max_depth: float = 10.0  # m; deeper readings are treated as invalid
-    # Move each depth image to its colour image's time (the store's /depth_timestamp) by the
-    # camera's constant-velocity motion over the gap: unsynchronised sensors (Kinect v1, TUM
-    # fr1) pair images up to 20 ms apart, up to two degrees of turn at fr1/rpy's speed
-    # (`slam.depth_timing`, docs/method.md §6). The gap is the stamps' difference minus
-    # `depth_time_lag`, the seconds by which the driver stamps depth later after capture than
-    # colour. Off in both presets: TUM's stamps are arrival times whose lag is not known well
-    # enough to help on recordings nobody tuned on (docs/experiments.md)
-    align_depth_time: bool = False
-    depth_time_lag: float = 0.0
-    # Seconds over which the camera reads its rows out, top to bottom; each frame is moved to one
-    # instant by the camera's constant-velocity motion before it is tracked and mapped
-    # (`slam.rolling_shutter`, docs/method.md §6). 0: a global shutter, as the paper assumes;
-    # None: the store's value (`bgs inspect` shows it; the converter's for the camera, else 0),
-    # estimated from the frames when the store says "unknown" (`readout_estimation`)
-    rolling_shutter_readout: float | None = 0.0
-    # The depth image's readout, when the depth sensor reads out otherwise than the colour one
-    # (a RealSense D435: global-shutter depth, rolling-shutter colour). None: the store's
-    # (`bgs inspect`), or `rolling_shutter_readout` when that is set (--set)
-    depth_rolling_shutter_readout: float | None = None
-    checkpoint_every: int = 10  # frames between job checkpoints (and on SIGTERM/SIGUSR1/SIGINT)
-    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
-    tracking: TrackingConfig = field(default_factory=TrackingConfig)
-    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
-    mapping: MappingConfig = field(default_factory=MappingConfig)
-    seeding: SeedingConfig = field(default_factory=SeedingConfig)
-    submaps: SubmapConfig = field(default_factory=SubmapConfig)
-    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
-    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
-    smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
-    global_map: GlobalMapConfig = field(default_factory=GlobalMapConfig)
-    readout_estimation: ReadoutEstimationConfig = field(default_factory=ReadoutEstimationConfig)
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-
 @dataclass(frozen=True)
 class Range:
     """The values a numeric setting accepts: finite, at least `low` (above it when
@@ -409,151 +49,498 @@ NON_NEGATIVE = Range(0)  # 0 usually switches the thing off
 POSITIVE = Range(0, low_open=True)  # rates, distances, scales
 SHARE = Range(0, 1)  # fractions, probabilities, alphas
 ANGLE_DEG = Range(0, 180, low_open=True)
-# Every numeric setting and what it accepts; `check` refuses the rest before a run starts
-# (tests/test_config.py walks every field with NaN, inf, 0 and -1).
-RANGES: dict[str, Range] = {
-    "seed": Range(0, 2**32 - 1),
-    "threads": Range(1, 512),
-    "crop_edge": NON_NEGATIVE,  # and leaving the coarsest level a pixel (`check_crop`, per store)
-    "max_depth": Range(0.1, 1000),  # m: no depth camera reads nearer than 0.1 m
-    "depth_time_lag": Range(-1, 1),  # s; either sensor may lag the other
-    "rolling_shutter_readout": Range(0, 1),  # s
-    "depth_rolling_shutter_readout": Range(0, 1),  # s
-    "checkpoint_every": COUNT,
-    "uncertainty.initial_logit": ANY,
-    "uncertainty.map_floor": POSITIVE,
-    "uncertainty.unobserved_alpha": SHARE,
-    "uncertainty.unobserved_variance": POSITIVE,
-    "uncertainty.sensor_hidden": COUNT,
-    "uncertainty.sensor_min": POSITIVE,
-    "uncertainty.sensor_initial": NON_NEGATIVE,
-    "uncertainty.sensor_lr": POSITIVE,
-    "uncertainty.sensor_downscale": COUNT,
-    "uncertainty.nguyen_a": POSITIVE,
-    "uncertainty.nguyen_b": NON_NEGATIVE,
-    "uncertainty.nguyen_z0": NON_NEGATIVE,
-    "uncertainty.nguyen_c": NON_NEGATIVE,
-    "uncertainty.refine_passes": NON_NEGATIVE,
-    "uncertainty.refine_lr": POSITIVE,
-    "uncertainty.calibration_pixels": COUNT,
-    "tracking.iterations": COUNT,
-    "tracking.rot_lr": POSITIVE,
-    "tracking.trans_lr": POSITIVE,
-    "tracking.lambda_color": POSITIVE,
-    "tracking.lambda_depth": POSITIVE,
-    "tracking.authors_color_weight": SHARE,
-    "tracking.downscale": COUNT,
-    "tracking.coarse_levels": Range(0, 6),
-    "tracking.coarse_fraction": SHARE,
-    "tracking.early_stop_rel": NON_NEGATIVE,
-    "tracking.early_stop_patience": NON_NEGATIVE,
-    "tracking.level_lr_factor": POSITIVE,
-    "tracking.init_err_ratio": NON_NEGATIVE,
-    "tracking.pivot_depth_ratio": NON_NEGATIVE,
-    "tracking.warm_iterations": NON_NEGATIVE,
-    "tracking.gn_converged": POSITIVE,
-    "registration.downscale": COUNT,
-    "registration.coarsest_width": Range(8),
-    "registration.iterations": COUNT,
-    "registration.converged": POSITIVE,
-    "registration.max_distance": POSITIVE,
-    "registration.min_alpha": SHARE,
-    "registration.min_fitness": SHARE,
-    "registration.max_shift": POSITIVE,
-    "registration.max_turn_deg": ANGLE_DEG,
-    "mapping.iterations": COUNT,
-    "mapping.new_submap_iterations": COUNT,
-    "mapping.current_frame_share": SHARE,
-    "mapping.gamma": NON_NEGATIVE,
-    "mapping.ssim_weight": SHARE,
-    "mapping.pruning_threshold": SHARE,
-    "mapping.downscale": COUNT,
-    "mapping.lr_means": POSITIVE,
-    "mapping.lr_colors": POSITIVE,
-    "mapping.lr_opacity": POSITIVE,
-    "mapping.lr_scales": POSITIVE,
-    "mapping.lr_rotations": POSITIVE,
-    "mapping.lr_uncertainty": POSITIVE,
-    "seeding.new_submap_points": COUNT,
-    "seeding.new_submap_gradient_points": NON_NEGATIVE,
-    "seeding.new_frame_points": NON_NEGATIVE,
-    "seeding.alpha_threshold": SHARE,
-    "seeding.depth_error_factor": POSITIVE,
-    "seeding.min_distance": NON_NEGATIVE,
-    "seeding.depth_push": Range(0.5, 2),
-    "seeding.initial_opacity": Range(0, 1, low_open=True),
-    "submaps.max_translation": POSITIVE,
-    "submaps.max_rotation_deg": ANGLE_DEG,
-    "submaps.every": COUNT,
-    "keyframes.threshold": ANY,  # K compares with a log-likelihood: any sign
-    "keyframes.max_gap": COUNT,
-    "loop_closure.min_submaps": NON_NEGATIVE,
-    "loop_closure.min_interval": NON_NEGATIVE,
-    "loop_closure.self_similarity": SHARE,
-    "loop_closure.max_candidates": COUNT,
-    "loop_closure.orb_features": COUNT,
-    "loop_closure.orb_patch": Range(3),
-    "loop_closure.orb_levels": COUNT,
-    "loop_closure.orb_scale": Range(1, low_open=True),
-    "loop_closure.orb_fast_threshold": COUNT,
-    "loop_closure.vocabulary_words": Range(2),
-    "loop_closure.vocabulary_iterations": COUNT,
-    "loop_closure.vocabulary_samples": COUNT,
-    "loop_closure.vocabulary_growth": Range(1, low_open=True),
-    "loop_closure.verify_pairs": COUNT,
-    "loop_closure.match_ratio": Range(0, 1, low_open=True),
-    "loop_closure.ransac_iterations": COUNT,
-    "loop_closure.ransac_threshold": POSITIVE,
-    "loop_closure.min_inliers": Range(3),
-    "loop_closure.min_inlier_ratio": SHARE,
-    "loop_closure.overlap_radius": POSITIVE,
-    "loop_closure.min_overlap": SHARE,
-    "loop_closure.viewpoints": COUNT,
-    "loop_closure.iterations": COUNT,
-    "loop_closure.rot_lr": POSITIVE,
-    "loop_closure.trans_lr": POSITIVE,
-    "loop_closure.downscale": COUNT,
-    "loop_closure.coarse_levels": Range(0, 6),
-    "loop_closure.coarse_fraction": SHARE,
-    "loop_closure.early_stop_rel": NON_NEGATIVE,
-    "loop_closure.early_stop_patience": NON_NEGATIVE,
-    "loop_closure.min_coverage": SHARE,
-    "loop_closure.inlier_depth": POSITIVE,
-    "loop_closure.min_depth_inliers": SHARE,
-    "loop_closure.max_disagreement_m": POSITIVE,
-    "loop_closure.max_disagreement_deg": ANGLE_DEG,
-    "loop_closure.icp_max_distance": POSITIVE,
-    "loop_closure.icp_iterations": COUNT,
-    "loop_closure.icp_min_fitness": SHARE,
-    "loop_closure.icp_max_rmse": POSITIVE,
-    "loop_closure.icp_normal_neighbours": Range(3),
-    "loop_closure.max_points": COUNT,
-    "loop_closure.max_correspondence_distance": POSITIVE,
-    "loop_closure.edge_prune_threshold": SHARE,
-    "loop_closure.preference_loop_closure": POSITIVE,
-    "loop_closure.information_prior": NON_NEGATIVE,
-    "loop_closure.inject_drift_deg": ANY,  # a test lever: either direction
-    "loop_closure.inject_drift_m": ANY,
-    "smoothing.log_ratio_min": ANY,
-    "smoothing.log_ratio_max": ANY,  # and above the minimum (`check`)
-    "smoothing.log_ratio_step": POSITIVE,
-    "global_map.passes": Range(0, 1000),
-    "global_map.hold_out_every": NON_NEGATIVE,
-    "global_map.downscale": COUNT,
-    "global_map.merge_depth_tolerance": POSITIVE,
-    "global_map.merge_min_alpha": SHARE,
-    "global_map.pruning_threshold": SHARE,
-    "global_map.checkpoint_every": COUNT,
-    "readout_estimation.frames": COUNT,
-    "readout_estimation.pairs": COUNT,
-    "readout_estimation.min_pairs": COUNT,
-    "readout_estimation.max_gap": Range(2),
-    "readout_estimation.min_turn_change": POSITIVE,
-    "readout_estimation.candidates": Range(3),
-    "readout_estimation.min_width": COUNT,
-    "readout_estimation.min_contrast": NON_NEGATIVE,
-    "readout_estimation.max_standard_error": POSITIVE,
-}
+
+
+def setting(default: Any, *accepts_and_doc: Any) -> Any:
+    """A setting's one declaration: ``setting(default, [accepts,] doc)``, with the `Range` a
+    numeric setting accepts and a one-line doc (`RANGES` and ``bgs settings`` read them)."""
+    *accepts, doc = accepts_and_doc
+    return field(default=default, metadata={"accepts": accepts[0] if accepts else None,
+                                            "doc": doc})  # fmt: skip
+
+
+@dataclass
+class UncertaintyConfig:
+    """Predictive variance (paper §III-A, §III-D; docs/method.md §2-4)."""
+
+    initial_logit: float = setting(
+        -7.0, ANY, "starting r_i of a new Gaussian; its variance v_i = softplus(r_i) ≈ 9.1e-4")
+    map_floor: float = setting(1e-3, POSITIVE, "added to the rendered map variances V_C, V_D")
+    unobserved_alpha: float = setting(
+        0.6, SHARE, "pixels whose rendered alpha A is below this are unobserved")
+    unobserved_variance: float = setting(
+        100.0, POSITIVE, "the map variance of an unobserved pixel (no gradient)")
+    full_grad: bool = setting(
+        False, "differentiate T_i² in V too (False: the authors' gradient, T_i² held constant)")
+    sensor_hidden: int = setting(32, COUNT, "channels of the sensor-noise network")
+    sensor_min: float = setting(1e-4, POSITIVE, "floor added to the network's softplus output")
+    sensor_initial: float = setting(
+        0.0, NON_NEGATIVE, "the untrained network's output (0: PyTorch's default init, the "
+        "authors')")
+    sensor_lr: float = setting(
+        1e-4, POSITIVE, "Adam's rate for the sensor network (trained in mapping only)")
+    sensor_downscale: int = setting(
+        1, COUNT, "evaluate the network this many times coarser than mapping (a CPU lever)")
+    # "none": the network predicts σ²_sensor,D itself (the paper). "nguyen": σ²_sensor,D is
+    # Nguyen et al.'s (2012) Kinect noise model of the measured depth, σ = a + b(z − z0)² +
+    # c/√z · θ²/(π/2 − θ)² with θ the surface's tilt from the depth's local slope, plus the
+    # frame's mean of the network's depth output: the physics ranks the pixels, the network
+    # learns the level (docs/method.md §3; the `cpu` preset's choice, docs/experiments.md)
+    sensor_prior: Literal["none", "nguyen"] = setting(
+        "none", "σ²_sensor,D from the network alone ('none', the paper) or Nguyen et al.'s Kinect "
+        "model times the network's frame level ('nguyen')")
+    nguyen_a: float = setting(0.0012, POSITIVE, "Nguyen's constant term a (m)")
+    nguyen_b: float = setting(0.0019, NON_NEGATIVE, "Nguyen's quadratic term b (m⁻¹)")
+    nguyen_z0: float = setting(0.4, NON_NEGATIVE, "Nguyen's reference distance z0 (m)")
+    nguyen_c: float = setting(0.0001, NON_NEGATIVE, "Nguyen's tilt term c (m^1.5)")
+    # At the end of a run, fit each frozen submap's r_i (Adam at `refine_lr`) and the sensor
+    # network by NLL_C + NLL_D (Eq. 13, 14) over the submap's keyframes for this many passes,
+    # the geometry and colours fixed (0: off, as the authors' SLAM). Why: within mapping's
+    # budget r_i hardly moves (see mapping.lr_uncertainty), and the authors measure AUSE on a
+    # map re-trained with the NLL for 30k iterations; this gives the map term its iterations
+    refine_passes: int = setting(
+        0, NON_NEGATIVE, "end-of-run passes fitting each frozen submap's r_i and the sensor network"
+        " by the NLL (0: off)")
+    refine_lr: float = setting(
+        0.05, POSITIVE, "Adam's rate for r_i in the end-of-run refinement (and the global stage)")
+    # At the end of a run (after the refinement), fit the gains a, b of Σ_D's map term and of
+    # its sensor term's per-pixel part by the Gaussian NLL (Eq. 14) of the keyframes' depth
+    # residuals, without the floors, which hide the two parts' relative scale from the NLL;
+    # the reports use σ²_sensor,D (that part × b) + a·V_D + floor (`slam.calibration`)
+    calibrate: bool = setting(
+        False, "fit the gains of Σ_D's map and sensor parts by the NLL at the end of a run")
+    calibration_pixels: int = setting(
+        500_000, COUNT, "depth residuals the calibration uses at most, spread over the keyframes")
+
+
+@dataclass
+class TrackingConfig:
+    """Uncertainty-normalised L1 tracking (paper Eq. 15-17; docs/method.md §6)."""
+
+    iterations: int = setting(
+        200, COUNT, "Adam iterations per frame (doubled for a frame that starts far off)")
+    rot_lr: float = setting(0.002, POSITIVE, "Adam's rate for the pose's rotation (rad)")
+    trans_lr: float = setting(0.01, POSITIVE, "Adam's rate for the pose's translation (m)")
+    lambda_color: float = setting(
+        900.0, POSITIVE, "λ_c, the colour term's weight in the tracking loss")
+    lambda_depth: float = setting(
+        900.0, POSITIVE, "λ_d, the depth term's weight in the tracking loss")
+    loss_form: Literal["paper", "authors"] = setting(
+        "paper", "the tracking loss as the paper writes it ('paper') or as the authors' code "
+        "computes it ('authors')")
+    authors_color_weight: float = setting(
+        0.6, SHARE, "the colour term's share w in the 'authors' loss form")
+    downscale: int = setting(1, COUNT, "track on images downsampled by this factor")
+    coarse_levels: int = setting(
+        0, Range(0, 6), "extra pyramid levels (×2 each) optimised coarse to fine first")
+    coarse_fraction: float = setting(
+        0.0, SHARE, "share of the iterations spent on the coarse levels")
+    # Adam stops when the best loss improved by less than this share of it over
+    # `early_stop_patience` iterations (0 disables); Gauss-Newton when its model predicts the
+    # next step gains less than this share
+    early_stop_rel: float = setting(
+        0.0, NON_NEGATIVE, "stop once the loss improves by less than this share (0: never early)")
+    early_stop_patience: int = setting(
+        0, NON_NEGATIVE, "iterations over which Adam's improvement is measured")
+    # each finer level's rates are this many times the coarser one's (1: the same everywhere),
+    # since Adam's first steps are about lr in size whatever is left to correct; no preset uses
+    # it: more precise frame to frame, worse over a sequence (docs/experiments.md)
+    level_lr_factor: float = setting(
+        1.0, POSITIVE, "each finer pyramid level's rates are this many times the coarser one's")
+    # LoopSplat's init_err_ratio: a frame whose loss at the initial pose exceeds this many times
+    # the median best loss of the frames tracked before (both at the coarsest level) gets twice
+    # the iterations on every level (0 disables); off, as in the authors' code, since it did
+    # not help on fr1/rpy (docs/experiments.md)
+    init_err_ratio: float = setting(
+        0.0, NON_NEGATIVE, "a frame starting at this many times the median loss gets twice the "
+        "iterations (0: off)")
+    # Where the pose update's rotation turns the camera: about the point on the optical axis at
+    # this fraction of the frame's median measured depth (exp(ξ) conjugated by that shift).
+    # 0: the camera centre, the left perturbation exp(ξ)·w2c of the paper's and LoopSplat's
+    # trackers. About the centre, a turn and a sideways shift move the image alike, and Adam's
+    # per-coordinate steps (1 cm against 0.11°) explain a fast turn by a shift first, then creep
+    # along that valley; about a point in the scene a rotation moves the image mostly by
+    # parallax, so the two trade less. No preset uses it: the drift over a sequence did not
+    # fall (docs/experiments.md)
+    pivot_depth_ratio: float = setting(
+        0.0, NON_NEGATIVE, "turn the camera about the optical axis at this share of the median "
+        "depth (0: about its centre)")
+    # Start each frame from the constant-velocity pose refined by dense RGB-D registration of
+    # the measured frame to the map rendered there (`registration`), falling back to constant
+    # velocity when it is not trusted; the paper's loss still decides the pose (docs/method.md §6)
+    warm_start: bool = setting(
+        False, "start from the constant-velocity pose corrected by dense registration to the "
+        "rendered map")
+    warm_iterations: int = setting(
+        0, NON_NEGATIVE, "iterations after a trusted warm start, at tracking resolution only (0: "
+        "the usual budget)")
+    # how the pose descends the loss: "adam" (the paper's and LoopSplat's Adam at trans_lr /
+    # rot_lr, with early stopping) or "gauss_newton" (trust-region steps from the renderer's
+    # exact gradient and the image-motion normal matrix, `slam.pose_jacobian`), used after a
+    # trusted warm start only: from a start far off (3° without one) it can settle centimetres
+    # away where Adam's fixed-size steps walk back, so such frames keep Adam
+    optimizer: Literal["adam", "gauss_newton"] = setting(
+        "adam", "how the pose descends the loss after a trusted warm start: 'adam' or "
+        "'gauss_newton'")
+    gn_converged: float = setting(
+        1e-4, POSITIVE, "Gauss-Newton stops once a step's |ξ| (m and rad) is this small")
+
+
+@dataclass
+class RegistrationConfig:
+    """Tracking's warm start: the measured frame registered to the rendered map by Gauss-Newton
+    on point-to-plane and photometric residuals (`bgs_batch.slam.tracking.registration`)."""
+
+    downscale: int = setting(2, COUNT, "registration resolution relative to tracking's")
+    coarsest_width: int = setting(
+        24, Range(8), "halve the resolution until this narrow (px), then go coarse to fine")
+    iterations: int = setting(10, COUNT, "Gauss-Newton steps per pyramid level at most")
+    converged: float = setting(
+        1e-5, POSITIVE, "stop a level once a step's |ξ| (m and rad) is this small")
+    max_distance: float = setting(
+        0.07, POSITIVE, "a point further than this from the rendered surface is not associated (m)")
+    min_alpha: float = setting(
+        0.9, SHARE, "rendered pixels with less alpha are not map (no surface there)")
+    min_fitness: float = setting(
+        0.5, SHARE, "share of the frame's depth that must associate, else constant velocity")
+    max_shift: float = setting(
+        0.1, POSITIVE, "a correction moving the camera further than this is not trusted (m)")
+    max_turn_deg: float = setting(
+        10.0, ANGLE_DEG, "a correction turning the camera more than this is not trusted (degrees)")
+
+
+@dataclass
+class MappingConfig:
+    """Keyframe mapping: L_3DGS + γ(NLL_C + NLL_D) (paper Eq. 12-14; docs/method.md §5)."""
+
+    iterations: int = setting(100, COUNT, "optimisation iterations per keyframe")
+    new_submap_iterations: int = setting(100, COUNT, "iterations for a submap's first keyframe")
+    current_frame_share: float = setting(
+        0.4, SHARE, "probability of sampling the current keyframe in an iteration")
+    gamma: float = setting(
+        1e-3, NON_NEGATIVE, "γ, the NLL terms' weight (the paper's; the authors' code uses 1e-4)")
+    ssim_weight: float = setting(0.2, SHARE, "the SSIM term's share of L_3DGS's colour loss")
+    pruning_threshold: float = setting(
+        0.5, SHARE, "Gaussians below this opacity are pruned at half and at the end of a round")
+    downscale: int = setting(1, COUNT, "map on images downsampled by this factor")
+    lr_means: float = setting(1e-4, POSITIVE, "Adam's rate for the Gaussians' centres")
+    lr_colors: float = setting(2.5e-3, POSITIVE, "Adam's rate for the Gaussians' colours")
+    lr_opacity: float = setting(0.05, POSITIVE, "Adam's rate for the Gaussians' opacity logits")
+    lr_scales: float = setting(5e-3, POSITIVE, "Adam's rate for the Gaussians' log scales")
+    lr_rotations: float = setting(1e-3, POSITIVE, "Adam's rate for the Gaussians' rotations")
+    # the authors' feature_lr for r_i; v_i hardly learns at it in the cpu budget, but faster
+    # rates cost tracking more than they help the ranking (docs/experiments.md), so the
+    # end-of-run refinement (uncertainty.refine_passes) trains it instead
+    lr_uncertainty: float = setting(
+        2.5e-3, POSITIVE, "Adam's rate for the Gaussians' r_i (the authors' feature_lr)")
+
+
+@dataclass
+class SeedingConfig:
+    """Where new Gaussians come from (LoopSplat's rules, docs/method.md §5)."""
+
+    new_submap_points: int = setting(
+        100_000, COUNT, "uniform random pixels seeded in a submap's first frame")
+    new_submap_gradient_points: int = setting(
+        50_000, NON_NEGATIVE, "pixels seeded there in proportion to the colour gradient")
+    new_frame_points: int = setting(30_000, NON_NEGATIVE, "seeds at most in a later keyframe")
+    alpha_threshold: float = setting(
+        0.6, SHARE, "later keyframes seed where the rendered alpha is below this")
+    depth_error_factor: float = setting(
+        40.0, POSITIVE, "... or where the depth error exceeds this many times the median error")
+    min_distance: float = setting(
+        0.01, NON_NEGATIVE, "candidates closer than this to an existing Gaussian are dropped (m)")
+    depth_push: float = setting(
+        1.005, Range(0.5, 2), "seeds sit this factor of their depth away (1.005: 0.5 % behind the "
+        "surface)")
+    initial_opacity: float = setting(0.5, Range(0, 1, low_open=True), "opacity of a new Gaussian")
+
+
+@dataclass
+class SubmapConfig:
+    """When a new submap starts (LoopSplat's rule, docs/method.md §8)."""
+
+    mode: Literal["motion", "interval"] = setting(
+        "motion", "start a new submap after enough motion ('motion') or every N frames "
+        "('interval')")
+    max_translation: float = setting(
+        0.5, POSITIVE, "motion mode: a new submap beyond this distance from the submap's first "
+        "frame (m)")
+    max_rotation_deg: float = setting(
+        50.0, ANGLE_DEG, "motion mode: ... or beyond this turn from it (degrees)")
+    # "angle": the rotation angle itself (axis-order free; never below any single Euler angle,
+    # so it switches no later); "euler": any of roll, pitch, yaw of R = R_z R_y R_x exceeds
+    # the threshold, LoopSplat's test (fewer submaps, so fewer loops: docs/experiments.md)
+    rotation_measure: Literal["angle", "euler"] = setting(
+        "angle", "the turn as one rotation angle ('angle') or any Euler angle ('euler', "
+        "LoopSplat's)")
+    every: int = setting(50, COUNT, "interval mode: frames per submap")
+
+
+@dataclass
+class KeyframeConfig:
+    """Predictive-surprise keyframe selection (paper §III-C)."""
+
+    mode: Literal["surprise", "every"] = setting(
+        "surprise", "keyframes by predictive surprise ('surprise', the paper's) or every frame "
+        "('every')")
+    threshold: float = setting(0.0, ANY, "K: a frame whose surprise exceeds this is a keyframe")
+    max_gap: int = setting(5, COUNT, "a keyframe at least every this many frames")
+
+
+# --- loop closure -----------------------------------------------------------------------------
+@dataclass
+class LoopClosureConfig:
+    """Loop closure over submaps (docs/method.md §8; `bgs_batch.slam.loop_closure`).
+
+    At every submap switch: ORB bag-of-words place recognition over keyframes (the vocabulary is
+    learnt online, no weights are downloaded), geometric verification (3-D/3-D RANSAC on depth),
+    render-based registration weighted by the predictive uncertainty (ICP as fallback), Open3D
+    pose-graph optimisation and rigid correction of submaps and poses.
+    """
+
+    enabled: bool = setting(True, "close loops between submaps")
+    descriptor: Literal["orb", "netvlad"] = setting(
+        "orb", "place recognition descriptor: 'orb' (learnt online) or 'netvlad' (not supported "
+        "yet)")
+    netvlad_weights: str = setting(
+        "", "a NetVLAD weights file of the user's, for descriptor=netvlad")
+    final: bool = setting(False, "also close loops after the last frame (LoopSplat's lc.final)")
+    # the trajectory's loop correction: "rigid" (LoopSplat's: each submap's frames move with
+    # its submap, so the difference of two neighbours' corrections is a jump between two
+    # frames) or "continuous" (interpolated between the submaps' centre frames, as a pose
+    # graph over every frame would spread it; `loop_closure.correction.continuous_poses`)
+    trajectory_correction: Literal["rigid", "continuous"] = setting(
+        "rigid", "frames move with their submap's correction ('rigid', LoopSplat's) or interpolated"
+        " between submaps ('continuous')")
+    # place recognition (LoopSplat: skipped below 4 submaps, min_interval 3 on TUM)
+    min_submaps: int = setting(4, NON_NEGATIVE, "finished submaps before detection starts")
+    min_interval: int = setting(
+        3, NON_NEGATIVE, "a candidate is more than this many submaps older than the query")
+    self_similarity: float = setting(
+        0.5, SHARE, "a query keyframe's similarity threshold: its k-th best to the n others of its "
+        "submap, k = max(int(n · this), 1)")
+    max_candidates: int = setting(2, COUNT, "best candidate submaps registered per switch")
+    orb_features: int = setting(500, COUNT, "ORB features per keyframe, on the input image")
+    orb_patch: int = setting(31, Range(3), "ORB's patch size and border (px)")
+    orb_levels: int = setting(4, COUNT, "ORB's pyramid levels")
+    orb_scale: float = setting(1.2, Range(1, low_open=True), "ORB's pyramid scale factor")
+    orb_fast_threshold: int = setting(20, COUNT, "ORB's FAST corner threshold")
+    vocabulary_words: int = setting(
+        256, Range(2), "words of the binary vocabulary (k-majority clusters of the descriptors "
+        "seen)")
+    vocabulary_iterations: int = setting(8, COUNT, "k-majority iterations per training")
+    vocabulary_samples: int = setting(
+        20_000, COUNT, "descriptors used per training (evenly spaced)")
+    vocabulary_growth: float = setting(
+        2.0, Range(1, low_open=True), "retrain once the descriptors seen grew by this factor")
+    # geometric verification: descriptor matches of keyframe pairs, rigid RANSAC on depth
+    verify_pairs: int = setting(3, COUNT, "most similar keyframe pairs verified per candidate")
+    match_ratio: float = setting(
+        0.8, Range(0, 1, low_open=True), "Lowe's ratio test on Hamming distances (and mutual best)")
+    ransac_iterations: int = setting(256, COUNT, "rigid RANSAC iterations per keyframe pair")
+    ransac_threshold: float = setting(0.05, POSITIVE, "RANSAC's 3-D inlier distance (m)")
+    min_inliers: int = setting(15, Range(3), "RANSAC inliers a verified pair needs")
+    min_inlier_ratio: float = setting(0.25, SHARE, "share of the matches that must be inliers")
+    overlap_radius: float = setting(
+        0.1, POSITIVE, "overlap gate: a query centre this near a candidate's counts (m; LoopSplat "
+        "0.32)")
+    min_overlap: float = setting(0.2, SHARE, "overlap gate: share of query centres that must count")
+    # render-based registration: query keyframes tracked in the candidate submap (Tracker loss)
+    viewpoints: int = setting(2, COUNT, "query keyframes localised in the candidate and fused")
+    weighting: Literal["uncertainty", "uniform"] = setting(
+        "uncertainty", "registration residuals over our predictive σ ('uncertainty') or a constant "
+        "one ('uniform', LoopSplat's L1)")
+    iterations: int = setting(
+        40, COUNT, "registration iterations per viewpoint, from the RANSAC estimate")
+    rot_lr: float = setting(
+        0.015, POSITIVE, "registration's Adam rate for rotation (LoopSplat: 3 × 5e-3)")
+    trans_lr: float = setting(0.005, POSITIVE, "registration's Adam rate for translation")
+    downscale: int = setting(1, COUNT, "registration resolution relative to mapping's")
+    coarse_levels: int = setting(1, Range(0, 6), "registration's extra coarse pyramid levels")
+    coarse_fraction: float = setting(
+        0.4, SHARE, "share of registration iterations on the coarse levels")
+    early_stop_rel: float = setting(
+        1e-3, NON_NEGATIVE, "registration stops once its loss improves by less than this share")
+    early_stop_patience: int = setting(
+        5, NON_NEGATIVE, "iterations over which that improvement is measured")
+    min_coverage: float = setting(
+        0.3, SHARE, "share of valid-depth pixels the candidate must render (alpha gate)")
+    inlier_depth: float = setting(
+        0.05, POSITIVE, "a covered pixel agrees when |D̂ − D| is below this (m)")
+    min_depth_inliers: float = setting(0.6, SHARE, "share of covered pixels that must agree")
+    max_disagreement_m: float = setting(
+        0.1, POSITIVE, "a viewpoint this far from the RANSAC estimate diverged (m)")
+    max_disagreement_deg: float = setting(
+        5.0, ANGLE_DEG, "... or turned this far from it (degrees)")
+    # geometric fallback: point-to-plane ICP on Gaussian centres
+    icp_max_distance: float = setting(0.05, POSITIVE, "ICP fallback's correspondence distance (m)")
+    icp_iterations: int = setting(30, COUNT, "ICP fallback's iterations")
+    icp_min_fitness: float = setting(0.3, SHARE, "ICP fallback's fitness an accepted loop needs")
+    icp_max_rmse: float = setting(
+        0.02, POSITIVE, "ICP fallback's inlier RMSE an accepted loop stays below (m)")
+    icp_normal_neighbours: int = setting(16, Range(3), "neighbours for the ICP fallback's normals")
+    max_points: int = setting(
+        20_000, COUNT, "Gaussian centres per submap for ICP, overlap and information")
+    # pose graph (Open3D, Levenberg-Marquardt; LoopSplat's values)
+    max_correspondence_distance: float = setting(
+        0.03, POSITIVE, "pose graph: distance for information matrices and the line process (m)")
+    edge_prune_threshold: float = setting(
+        0.25, SHARE, "pose graph: loop edges weighted below this are pruned")
+    preference_loop_closure: float = setting(
+        5.0, POSITIVE, "pose graph: weight of loop edges against odometry")
+    information_prior: float = setting(
+        1.0, NON_NEGATIVE, "added to every edge's information diagonal (no overlap)")
+    # evaluation lever (tests, bench/loop_closure.py): odometry drift injected at every submap
+    # switch, a rotation about the world y axis through the camera plus a shift along its x
+    # axis; works with loop closure on or off; keep 0 for real runs
+    inject_drift_deg: float = setting(
+        0.0, ANY, "test lever: odometry drift injected at every submap switch, turn about world y "
+        "(degrees; 0 for real runs)")
+    inject_drift_m: float = setting(0.0, ANY, "test lever: ... and shift along the camera's x (m)")
+
+
+# --- end loop closure ----------------------------------------------------------------------------
+
+
+@dataclass
+class SmoothingConfig:
+    """Fixed-interval smoothing of the reported trajectory (`bgs_batch.slam.smoothing`): a
+    constant-velocity model whose noise ratio is the tracked trajectory's own maximum-likelihood
+    value, searched over log10(q / r) (q in units²/s³, r in units²) on this grid."""
+
+    enabled: bool = setting(
+        False, "smooth the reported trajectory at the tracked trajectory's own maximum-likelihood "
+        "noise")
+    log_ratio_min: float = setting(
+        -2.0, ANY, "the smoother's noise-ratio grid, log10(q / r): from here (a smooth path at 1 s "
+        "scales)")
+    log_ratio_max: float = setting(10.0, ANY, "... to here (no smoothing at 30 frames/s)")
+    log_ratio_step: float = setting(0.25, POSITIVE, "... in these steps")
+
+
+@dataclass
+class GlobalMapConfig:
+    """The end-of-run global map (docs/method.md §8c; `bgs_batch.slam.global_map`): the
+    corrected submaps merged where each owns the surface, then optimised at the reported poses
+    on every frame but the held-out ones, by the mapping loss (Eq. 12-14)."""
+
+    passes: float = setting(
+        2.0, Range(0, 1000), "passes over the training frames, one Adam step per visit (0: the "
+        "merged map as it is)")
+    hold_out_every: int = setting(
+        8, NON_NEGATIVE, "every N-th frame that is not a keyframe is held out and scored (0: none)")
+    downscale: int = setting(1, COUNT, "render at input resolution / this (1: full resolution)")
+    merge_depth_tolerance: float = setting(
+        0.05, POSITIVE, "merge: another submap has a Gaussian's surface within this share of its "
+        "depth")
+    merge_min_alpha: float = setting(
+        0.9, SHARE, "merge: ... where that submap's rendered alpha reaches this")
+    pruning_threshold: float = setting(
+        0.005, SHARE, "at the end, Gaussians below this opacity go (Gaussian-SLAM's value)")
+    checkpoint_every: int = setting(
+        100, COUNT, "visits between the job's checkpoints (and on a stop signal)")
+
+
+@dataclass
+class ReadoutEstimationConfig:
+    """The rolling-shutter readout estimated from the first frames when the store does not know
+    the camera (`bgs convert … --readout auto`; `bgs_batch.slam.readout`, docs/method.md §6)."""
+
+    frames: int = setting(120, COUNT, "the first frames searched for turns")
+    pairs: int = setting(8, COUNT, "frame pairs scored, those whose turning differs most")
+    min_pairs: int = setting(
+        4, COUNT, "fewer informative pairs: no estimate (a global shutter is kept)")
+    max_gap: int = setting(8, Range(2), "frames between the two of a pair at most")
+    min_turn_change: float = setting(
+        0.1, POSITIVE, "a pair's angular velocities differ at least this much (rad/s)")
+    candidates: int = setting(11, Range(3), "readouts scored, evenly from 0 to one frame interval")
+    # the frames are registered at the largest integer downscale leaving this many pixels
+    # across (after the crop): 640 → 320, fr1's 540 → 270, 320 → 320; at 160 px the
+    # estimate came out 16 % low on the synthetic hard room, at 320 px 7 % (docs/experiments.md)
+    min_width: int = setting(
+        256, COUNT, "register the frames at the largest downscale leaving this many pixels across")
+    # no estimate when the pairs' mean cost (each normalised by its minimum) varies by less
+    # than this over the candidates (the frames cannot tell the readouts apart), or when the
+    # standard error of the pairs' own minima exceeds this share of a frame interval
+    min_contrast: float = setting(
+        0.2, NON_NEGATIVE, "no estimate when the pairs' cost varies less than this share")
+    max_standard_error: float = setting(
+        0.1, POSITIVE, "no estimate when its standard error exceeds this share of a frame interval")
+
+
+@dataclass
+class Config:
+    """A whole SLAM run."""
+
+    seed: int = setting(
+        0, Range(0, 2**32 - 1), "the run's random seed (sampling, seeding, the global stage's "
+        "order)")
+    threads: int = setting(2, Range(1, 512), "numba kernel threads; results never depend on it")
+    crop_edge: int | None = setting(
+        None, NON_NEGATIVE, "pixels removed at every image border first (None: the store's "
+        "recommended crop)")
+    max_depth: float = setting(10.0, Range(0.1, 1000), "deeper readings are invalid (m)")
+    # Move each depth image to its colour image's time (the store's /depth_timestamp) by the
+    # camera's constant-velocity motion over the gap: unsynchronised sensors (Kinect v1, TUM
+    # fr1) pair images up to 20 ms apart, up to two degrees of turn at fr1/rpy's speed
+    # (`slam.depth_timing`, docs/method.md §6). The gap is the stamps' difference minus
+    # `depth_time_lag`, the seconds by which the driver stamps depth later after capture than
+    # colour. Off in both presets: TUM's stamps are arrival times whose lag is not known well
+    # enough to help on recordings nobody tuned on (docs/experiments.md)
+    align_depth_time: bool = setting(
+        False, "move each depth image to its colour image's time stamp by the camera's motion")
+    depth_time_lag: float = setting(
+        0.0, Range(-1, 1), "seconds by which the driver stamps depth later after capture than "
+        "colour")
+    # Seconds over which the camera reads its rows out, top to bottom; each frame is moved to one
+    # instant by the camera's constant-velocity motion before it is tracked and mapped
+    # (`slam.rolling_shutter`, docs/method.md §6). 0: a global shutter, as the paper assumes;
+    # None: the store's value (`bgs inspect` shows it; the converter's for the camera, else 0),
+    # estimated from the frames when the store says "unknown" (`readout_estimation`)
+    rolling_shutter_readout: float | None = setting(
+        0.0, Range(0, 1), "seconds the camera reads its rows over (0: global shutter; None: the "
+        "store's, estimated when unknown)")
+    # The depth image's readout, when the depth sensor reads out otherwise than the colour one
+    # (a RealSense D435: global-shutter depth, rolling-shutter colour). None: the store's
+    # (`bgs inspect`), or `rolling_shutter_readout` when that is set (--set)
+    depth_rolling_shutter_readout: float | None = setting(
+        None, Range(0, 1), "the depth image's readout, when it differs from colour's (None: the "
+        "store's, or rolling_shutter_readout's when set)")
+    checkpoint_every: int = setting(
+        10, COUNT, "frames between job checkpoints (and on SIGTERM/SIGUSR1/SIGINT)")
+    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    seeding: SeedingConfig = field(default_factory=SeedingConfig)
+    submaps: SubmapConfig = field(default_factory=SubmapConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    loop_closure: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
+    global_map: GlobalMapConfig = field(default_factory=GlobalMapConfig)
+    readout_estimation: ReadoutEstimationConfig = field(default_factory=ReadoutEstimationConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+def _settings(section: type, prefix: str = "") -> dict[str, dataclasses.Field]:
+    """Every setting of a config class by its dotted key, sections walked in order."""
+    found: dict[str, dataclasses.Field] = {}
+    for f in dataclasses.fields(section):
+        if dataclasses.is_dataclass(f.default_factory):
+            found |= _settings(f.default_factory, f"{prefix}{f.name}.")
+        else:
+            found[prefix + f.name] = f
+    return found
+
+
+SETTINGS = _settings(Config)  # key → its field (default, `Range`, doc in the metadata)
+# Every numeric setting and what it accepts (`setting`); `check` refuses the rest before a run
+# starts (tests/test_config.py walks every field with NaN, inf, 0 and -1)
+RANGES: dict[str, Range] = {key: f.metadata["accepts"] for key, f in SETTINGS.items()
+                            if f.metadata["accepts"] is not None}  # fmt: skip
 
 
 PRESETS: dict[str, dict[str, Any]] = {
@@ -775,6 +762,26 @@ def _field(config: Config, key: str) -> tuple[Any, dataclasses.Field]:
         if not dataclasses.is_dataclass(owner):
             raise ConfigError(f"unknown config key {key!r}: {'.'.join(parts[: i + 1])} is a value")
     raise AssertionError("unreachable")
+
+
+def accepted_values(key: str) -> str:
+    """What ``--set key=…`` accepts, in words (``bgs settings``)."""
+    owner, f = _field(Config(), key)
+    kind = typing.get_type_hints(type(owner))[f.name]
+    optional = type(None) in typing.get_args(kind)
+    if optional:
+        kind = next(k for k in typing.get_args(kind) if k is not type(None))
+    if typing.get_origin(kind) is Literal:
+        words = "one of " + ", ".join(typing.get_args(kind))
+    elif kind is bool:
+        words = "true or false"
+    elif kind is str:
+        words = "text"
+    else:
+        accepts = f.metadata["accepts"]
+        words = ("an integer" if kind is int else "a number") + (
+            accepts.describe().removeprefix("a finite number") if accepts else "")
+    return words + (", or none" if optional else "")
 
 
 def parse_value(config: Config, key: str, text: str) -> Any:

@@ -23,9 +23,29 @@ def test_version_and_help_teach():
     top = run("--help")
     assert top.exit_code == 0 and "bgs convert tum" in top.output and "bgs demo" in top.output
     for command in (["convert", "tum"], ["convert", "scannet"], ["convert", "bag"], ["inspect"],
-                    ["synth"], ["demo"], ["convert"], ["run"], ["status"]):  # fmt: skip
+                    ["synth"], ["demo"], ["convert"], ["run"], ["status"],
+                    ["settings"]):  # fmt: skip
         result = run(*command, "--help")
         assert result.exit_code == 0 and "Example" in result.output, command
+
+
+def test_settings_lists_every_key_with_its_value_range_and_doc():
+    from bgs_batch.config import SETTINGS
+
+    listed = run("settings")
+    assert listed.exit_code == 0
+    keys = [line.split(" = ")[0] for line in listed.output.splitlines() if " = " in line
+            and not line.startswith(" ")]  # fmt: skip
+    assert keys == list(SETTINGS)
+    tracking = run("settings", "tracking.iterations").output.splitlines()
+    assert tracking[0] == "tracking.iterations = 60 (paper: 200)  [an integer >= 1]"
+    assert tracking[1].startswith("    Adam iterations per frame")
+    assert "note: tracking.iterations=60 applies only to frames whose warm start" in tracking[2]
+    paper = run("settings", "rolling_shutter_readout", "--preset", "paper").output
+    assert paper.startswith("rolling_shutter_readout = 0.0 (cpu: none)  [a number >= 0 and <= 1,"
+                            " or none]")  # fmt: skip
+    unknown = run("settings", "trackin.")
+    assert unknown.exit_code == 2 and "tracking" in unknown.output
 
 
 def test_usage_errors_exit_2():

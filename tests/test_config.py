@@ -6,8 +6,10 @@ import pytest
 from bgs_batch.config import (
     PRESETS,
     RANGES,
+    SETTINGS,
     Config,
     ConfigError,
+    accepted_values,
     config_from_dict,
     load_config,
 )
@@ -76,9 +78,12 @@ def _numeric_keys() -> list[tuple[str, type]]:
     return list(walk(Config))
 
 
-def test_every_numeric_setting_states_its_range():
+def test_every_numeric_setting_states_its_range_and_every_setting_its_doc():
     keys = {key for key, _ in _numeric_keys()}
     assert keys == set(RANGES), (keys ^ set(RANGES))
+    assert set(SETTINGS) >= keys and len(SETTINGS) > len(keys)  # and the switches and choices
+    undocumented = [key for key, f in SETTINGS.items() if len(f.metadata["doc"]) < 10]
+    assert undocumented == []
     for preset in PRESETS:  # and every preset lies within them
         load_config(preset)
 
@@ -112,6 +117,15 @@ def test_nan_inf_zero_and_minus_one_are_refused_or_in_range(key, kind):
 def test_the_reported_nonsense_settings_are_refused(override):
     with pytest.raises(ConfigError, match="out of range"):
         load_config("cpu", [override])
+
+
+def test_what_a_setting_accepts_reads_as_english():
+    assert accepted_values("tracking.iterations") == "an integer >= 1"
+    assert accepted_values("mapping.ssim_weight") == "a number >= 0 and <= 1"
+    assert accepted_values("crop_edge") == "an integer >= 0, or none"
+    assert accepted_values("tracking.optimizer") == "one of adam, gauss_newton"
+    assert accepted_values("smoothing.enabled") == "true or false"
+    assert accepted_values("keyframes.threshold") == "a number"
 
 
 def test_a_range_reads_as_english():
