@@ -22,11 +22,12 @@ store does not know has its rolling-shutter readout estimated from the first fra
 6. loop closure (`loop_closure`): the finished submap is matched against older ones, registered
    and a pose graph corrects submaps and poses.
 
-At the end of a run (`Slam.finish`) each frozen submap's variances and the sensor network are
-refined by the NLL (Eq. 13, 14) with the geometry fixed, and Σ_D's two parts get their gains
-(`calibration`); the reported trajectory is smoothed (`smoothing`); then the global stage
-(`global_map`, `Slam.global_stage`) merges the submaps where each owns the surface and
-optimises the merged map at the reported poses on every frame but the held-out ones.
+At the end of a run (`end_of_run`, conducted by `Slam.finish` and `Slam.trajectory`) each
+frozen submap's variances and the sensor network are refined by the NLL (Eq. 13, 14) with the
+geometry fixed, and Σ_D's two parts get their gains (`calibration`); the reported trajectory is
+smoothed (`smoothing`); then the global stage (`global_map`, `Slam.global_stage`) merges the
+submaps where each owns the surface and optimises the merged map at the reported poses on every
+frame but the held-out ones.
 """
 
 from bgs_batch.slam.pipeline import Slam

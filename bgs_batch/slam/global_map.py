@@ -34,10 +34,11 @@ from bgs_batch.config import Config, GlobalMapConfig
 from bgs_batch.render import Camera, render
 from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.frames import Level, between_levels, downsample
-from bgs_batch.slam.gaussian_map import UNCERTAINTY_KEY, GaussianMap
+from bgs_batch.slam.gaussian_map import PARAMS, UNCERTAINTY_KEY, GaussianMap
 from bgs_batch.slam.losses import mapping_loss, predictive_variances
 from bgs_batch.slam.mapping import Keyframe
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.submaps import SubmapRecord, submap_params
 
 MIN_DEPTH = 1e-6  # m: points at or behind the camera project nowhere
 ORDER_STREAM = 0x610BA1  # the stage's own random stream, apart from the SLAM's (`Slam.rng`)
@@ -139,6 +140,24 @@ class Ownership:
     def keep(self, submap: int) -> np.ndarray:
         """The Gaussians of `submap` that stay (bool mask)."""
         return self.own[submap] >= self.other[submap]
+
+
+def merge_submaps(submaps: list[SubmapRecord], keyframe: Callable[[int], Keyframe],
+                  cfg: GlobalMapConfig) -> tuple[Params, list[int]]:  # fmt: skip
+    """The frozen submaps merged where each owns the surface (`Ownership`, seen from every
+    submap's keyframes as `keyframe(i)` re-reads them): the merged Gaussians, and how many each
+    submap gave."""
+    means = [submap_params(record)["means"].numpy() for record in submaps]
+    ownership = Ownership(means, cfg)
+    for k, record in enumerate(submaps):
+        keyframes = [keyframe(i) for i in record.keyframes]
+        for view in submap_views(k, submap_params(record), keyframes):
+            ownership.add(view)
+    masks = [torch.from_numpy(ownership.keep(k)) for k in range(len(submaps))]
+    parts = [submap_params(record) for record in submaps]
+    merged = {name: torch.cat([p[name][m] for p, m in zip(parts, masks, strict=True)])
+              for name in PARAMS}  # fmt: skip
+    return merged, [int(mask.sum()) for mask in masks]
 
 
 def visit_order(training: list[int], passes: float, seed: int) -> list[int]:

@@ -18,25 +18,24 @@ from typing import Any
 import numpy as np
 import torch
 
-from bgs_batch.atomic import save_torch
 from bgs_batch.config import Config, separate_readouts
 from bgs_batch.slam.adam import Adam
-from bgs_batch.slam.calibration import depth_samples, fit_depth_gains
 from bgs_batch.slam.depth_timing import depth_motion, interval_motion
+from bgs_batch.slam.end_of_run import (
+    ReadKeyframe,
+    calibrate_depth_gains,
+    refine_uncertainties,
+    reported_trajectory,
+)
 from bgs_batch.slam.frames import Level, prepare_frame
-from bgs_batch.slam.gaussian_map import PARAMS, UNCERTAINTY_KEY, GaussianMap
-from bgs_batch.slam.global_map import GlobalMapStage, Ownership, split_frames, submap_views
+from bgs_batch.slam.gaussian_map import GaussianMap
+from bgs_batch.slam.global_map import GlobalMapStage, merge_submaps, split_frames
 from bgs_batch.slam.keyframes import KeyframeSelector
 from bgs_batch.slam.loop_closure import LoopCloser, inject_drift
-from bgs_batch.slam.loop_closure.correction import (
-    continuous_poses,
-    load_mapped,
-    write_uncertainty,
-)
 from bgs_batch.slam.mapping import Keyframe, Mapper
-from bgs_batch.slam.sensor_noise import DepthGains, SensorNoiseNet
-from bgs_batch.slam.smoothing import SmoothingReport, smooth_trajectory
-from bgs_batch.slam.submaps import SubmapRecord, exceeds_motion
+from bgs_batch.slam.sensor_noise import SensorNoiseNet
+from bgs_batch.slam.smoothing import SmoothingReport
+from bgs_batch.slam.submaps import SubmapRecord, exceeds_motion, freeze_submap
 from bgs_batch.slam.tracking import Tracker, constant_velocity
 from bgs_batch.store import Frame
 
@@ -310,13 +309,9 @@ class Slam:
     def _finish_submap(self, last_frame: int) -> None:
         """Freeze the active submap to disk and start an empty one."""
         index = len(self.submaps)
-        path = self.submap_dir / f"{index:06d}.pt"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        keyframes = [k.frame for k in self.active_keyframes]
-        save_torch({"params": self.gmap.state_dict(), "keyframes": torch.tensor(keyframes),
-                    "first_frame": self.submap_first_frame}, path)  # fmt: skip
-        self.submaps.append(SubmapRecord(index, str(path), self.submap_first_frame,
-                                         last_frame, keyframes, len(self.gmap)))  # fmt: skip
+        self.submaps.append(freeze_submap(
+            self.submap_dir / f"{index:06d}.pt", index, self.gmap.state_dict(),
+            [k.frame for k in self.active_keyframes], self.submap_first_frame, last_frame))
         self.gmap = GaussianMap()
         self.active_keyframes = []
 
@@ -396,82 +391,38 @@ class Slam:
         split = split_frames(len(self.poses), set(self.keyframe_frames),
                              self.cfg.global_map.hold_out_every)  # fmt: skip
         with self.timings.measure("global_map"):
-            count = len(self.submaps)
-            means = [self._submap_params(k)["means"].numpy() for k in range(count)]
-            ownership = Ownership(means, self.cfg.global_map)
-            for k, record in enumerate(self.submaps):
-                keyframes = [self._reread_keyframe(i, read_frame) for i in record.keyframes]
-                for view in submap_views(k, self._submap_params(k), keyframes):
-                    ownership.add(view)
-            masks = [torch.from_numpy(ownership.keep(k)) for k in range(count)]
-            parts = [self._submap_params(k) for k in range(count)]
-            merged = {name: torch.cat([p[name][m] for p, m in zip(parts, masks, strict=True)])
-                      for name in PARAMS}  # fmt: skip
-        kept = [int(mask.sum()) for mask in masks]
+            merged, kept = merge_submaps(self.submaps, self._keyframe_reader(read_frame),
+                                         self.cfg.global_map)  # fmt: skip
         return GlobalMapStage(self.cfg, merged, poses, split, self.sensor, kept)
 
-    def _submap_params(self, index: int) -> dict[str, torch.Tensor]:
-        """The Gaussians of frozen submap `index` as corrected and refined (its file's params)."""
-        return torch.load(self.submaps[index].path, weights_only=True)["params"]
+    def _keyframe_reader(self, read_frame: Callable[[int], Frame]) -> ReadKeyframe:
+        return lambda index: self._reread_keyframe(index, read_frame)
 
     def _reread_keyframe(self, index: int, read_frame: Callable[[int], Frame]) -> Keyframe:
         """Keyframe `index` from the store, prepared as when it was mapped."""
         return Keyframe(index, self.prepare_index(index, read_frame)[1], self.poses[index])
 
     def finish(self, read_frame: Callable[[int], Frame]) -> None:
-        """Write the last submap too (LoopSplat drops it; its frames deserve a map), then refine
-        every submap's uncertainties (`uncertainty.refine_passes`; `read_frame(i)` reads
-        keyframe i). Repeatable: after an interruption it gives the same files again."""
+        """Write the last submap too (LoopSplat drops it; its frames deserve a map), then the
+        end-of-run stages (`end_of_run`): refine every submap's uncertainties and calibrate
+        Σ_D's gains (`read_frame(i)` reads keyframe i). Repeatable: after an interruption it
+        gives the same files again."""
         if self.active_keyframes:
             finished = self.active_keyframes
             self._finish_submap(last_frame=len(self.poses) - 1)
             if self.cfg.loop_closure.final:  # LoopSplat's lc.final
                 self._close_loops(finished, event=None)
         u = self.cfg.uncertainty
+        keyframe = self._keyframe_reader(read_frame)
         if u.refine_passes or u.calibrate:
             with self.timings.measure("refinement"):
                 if u.refine_passes:
-                    for record in self.submaps:
-                        self._refine_submap(record, read_frame)
+                    refine_uncertainties(self.mapper, self.submaps, keyframe)
                 if u.calibrate:
-                    self._calibrate(read_frame)
+                    calibrate_depth_gains(self.sensor, self.submaps, keyframe,
+                                          len(self.keyframe_frames), u)  # fmt: skip
 
     def trajectory(self) -> tuple[np.ndarray, SmoothingReport | None]:
-        """The camera-to-world poses (N, 4, 4) to report: as tracked and corrected, with the
-        loop corrections spread along the frames when `loop_closure.trajectory_correction` is
-        "continuous" (the submaps themselves stay rigidly corrected), then smoothed over the
-        frames when `smoothing.enabled` (with the noise the smoother estimated)."""
-        poses = np.stack(self.poses)
-        lc = self.cfg.loop_closure
-        if lc.enabled and lc.trajectory_correction == "continuous" and self.submaps:
-            spans = [(r.first_frame, r.last_frame) for r in self.submaps]
-            poses = continuous_poses(poses, spans, self.loop_closer.chain_corrections(len(spans)))
-        if not self.cfg.smoothing.enabled:
-            return poses, None
-        return smooth_trajectory(poses, np.array(self.timestamps), self.cfg.smoothing)
-
-    def _calibrate(self, read_frame: Callable[[int], Frame]) -> None:
-        """Fit Σ_D's gains on every submap's keyframes at their final state
-        (`calibration.fit_depth_gains`), from gains 1 so that a repeated call agrees."""
-        self.sensor.set_gains(DepthGains())
-        limit = self.cfg.uncertainty.calibration_pixels // max(1, len(self.keyframe_frames))
-        samples = []
-        for record in self.submaps:
-            gmap = GaussianMap.from_state_dict(torch.load(record.path, weights_only=True)["params"])
-            if not len(gmap):
-                continue
-            gaussians = gmap.gaussians()
-            for index in record.keyframes:
-                keyframe = self._reread_keyframe(index, read_frame)
-                samples.append(depth_samples(gaussians, keyframe, self.sensor,
-                                             self.cfg.uncertainty, limit))  # fmt: skip
-        if samples:
-            self.sensor.set_gains(fit_depth_gains(*map(np.concatenate, zip(*samples, strict=True))))
-
-    def _refine_submap(self, record: SubmapRecord, read_frame: Callable[[int], Frame]) -> None:
-        """`Mapper.refine_uncertainty` on a frozen submap (at its final pose), starting from the
-        r_i as mapped, so that a repeated call gives the same result."""
-        gmap = GaussianMap.from_state_dict(load_mapped(record.path))
-        keyframes = [self._reread_keyframe(i, read_frame) for i in record.keyframes]
-        self.mapper.refine_uncertainty(gmap, keyframes)
-        write_uncertainty(record.path, gmap.params[UNCERTAINTY_KEY].detach())
+        """The camera-to-world poses (N, 4, 4) to report (`end_of_run.reported_trajectory`)."""
+        return reported_trajectory(self.cfg, np.stack(self.poses), np.array(self.timestamps),
+                                   self.submaps, self.loop_closer)  # fmt: skip

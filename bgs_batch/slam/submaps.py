@@ -1,12 +1,15 @@
-"""Submaps: when the camera has moved far enough to start a new one, and the record of a frozen
-submap on disk (LoopSplat's submaps: a new one after 0.5 m or 50°)."""
+"""Submaps: when the camera has moved far enough to start a new one, and a frozen submap on disk
+(its file and its record; LoopSplat's submaps: a new one after 0.5 m or 50°)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+import torch
 
+from bgs_batch.atomic import save_torch
 from bgs_batch.config import SubmapConfig
 from bgs_batch.geometry import euler_zyx_deg, rotation_angle_deg
 
@@ -32,3 +35,18 @@ class SubmapRecord:
     last_frame: int
     keyframes: list[int]
     gaussians: int
+
+
+def freeze_submap(path: Path, index: int, params: dict[str, torch.Tensor], keyframes: list[int],
+                  first_frame: int, last_frame: int) -> SubmapRecord:  # fmt: skip
+    """Write a finished submap's Gaussians and keyframes to `path` (atomic); its record."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_torch({"params": params, "keyframes": torch.tensor(keyframes),
+                "first_frame": first_frame}, path)  # fmt: skip
+    return SubmapRecord(index, str(path), first_frame, last_frame, keyframes,
+                        len(params["means"]))  # fmt: skip
+
+
+def submap_params(record: SubmapRecord) -> dict[str, torch.Tensor]:
+    """The Gaussians of a frozen submap as corrected and refined (its file's ``params``)."""
+    return torch.load(record.path, weights_only=True)["params"]
