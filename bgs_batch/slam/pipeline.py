@@ -18,9 +18,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from bgs_batch.config import Config, separate_readouts
+from bgs_batch.config import Config
+from bgs_batch.errors import InputError
 from bgs_batch.slam.adam import Adam
-from bgs_batch.slam.depth_timing import depth_motion, interval_motion
+from bgs_batch.slam.camera_motion import CameraMotion, ReadoutMotions
 from bgs_batch.slam.end_of_run import (
     ReadKeyframe,
     calibrate_depth_gains,
@@ -36,7 +37,7 @@ from bgs_batch.slam.mapping import Keyframe, Mapper
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
 from bgs_batch.slam.smoothing import SmoothingReport
 from bgs_batch.slam.submaps import SubmapRecord, exceeds_motion, freeze_submap
-from bgs_batch.slam.tracking import Tracker, constant_velocity
+from bgs_batch.slam.tracking import Tracker
 from bgs_batch.store import Frame
 
 
@@ -69,11 +70,6 @@ def logged_rows(transform: np.ndarray) -> list[float]:
     return [float(x) for x in transform[:3].ravel()]
 
 
-# the camera's motion over a frame's colour readout, and over its depth readout when the two
-# are read out apart (`separate_readouts`); None: nothing to move
-ReadoutMotions = tuple[np.ndarray | None, np.ndarray | None]
-
-
 def _log_motions(event: dict[str, Any], prefix: str, motions: dict[str, np.ndarray | None],
                  readouts: ReadoutMotions) -> None:  # fmt: skip
     """Put the motions that move a frame's images into its log event (for the exports)."""
@@ -92,14 +88,6 @@ class Slam:
     submap_dir: Path
     poses: list[np.ndarray] = field(default_factory=list)
     timestamps: list[float] = field(default_factory=list)  # of the frames tracked so far
-    # per frame, the warp that moved its depth image to its colour image's time (frames
-    # without one had nothing to move): frames are re-read on resume, for the refinement and
-    # for the global stage, and prepared as when they were tracked
-    depth_motions: dict[int, np.ndarray] = field(default_factory=dict)
-    # per frame, the camera's motion over its rows' readout (`rolling_shutter`)
-    readout_motions: dict[int, np.ndarray] = field(default_factory=dict)
-    # and over its depth image's, when the two are read out apart (`separate_readouts`)
-    depth_readout_motions: dict[int, np.ndarray] = field(default_factory=dict)
     submaps: list[SubmapRecord] = field(default_factory=list)
     keyframe_frames: list[int] = field(default_factory=list)
     mapping_calls: int = 0
@@ -118,10 +106,9 @@ class Slam:
         self.active_keyframes: list[Keyframe] = []
         self.submap_first_frame = 0
         self.loop_closer = LoopCloser(self.cfg)
-        # the previous pose moved with an injected drift: the next constant-velocity step's
-        # reference, so that the drift moves the new submap rigidly instead of adding a jump
-        # to the velocity (None: the previous pose itself)
-        self.drifted_prev: np.ndarray | None = None
+        # the constant-velocity motion, and the motions each frame was prepared with: frames
+        # are re-read on resume, at the end of the run and by the exports, prepared as tracked
+        self.motion = CameraMotion(self.cfg)
         # the first frame while its rows wait for a velocity to be rectified with (the second
         # frame's), `_rectify_first_keyframe`
         self.unrectified_first: Frame | None = None
@@ -134,8 +121,8 @@ class Slam:
     def process(self, frame: Frame) -> dict[str, Any]:
         """Track, select and map one frame; return its log event (steps 1-5 of `bgs_batch.slam`)."""
         totals_before = asdict(self.timings)
-        motion = self._depth_motion(frame)
-        readouts = self._readout_motions()
+        motion = self.motion.next_depth_motion(frame, self.poses, self.timestamps)
+        readouts = self.motion.next_readout_motions(self.poses, self.timestamps)
         full, level = self.prepare(frame, motion, readouts)
         event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
         # the exports prepare the frame the same way from the log
@@ -150,7 +137,7 @@ class Slam:
             readouts = self._rectify_first_keyframe(event)
             full, level = self.prepare(frame, motion, readouts)
             _log_motions(event, "", {}, readouts)
-        elif not self.poses[:-1] and self._readout_active():
+        elif not self.poses[:-1] and self.motion.readout_active():
             self.unrectified_first = frame
         first_of_submap = not self.active_keyframes
         if not first_of_submap and self._should_switch(frame.index, c2w):
@@ -158,9 +145,7 @@ class Slam:
             first_of_submap = True
         decision = self.selector.decide(frame.index, score_c, score_d, first_of_submap)
         event.update(decision.as_dict())
-        if motion is not None:
-            self.depth_motions[frame.index] = motion
-        self._keep_readouts(frame.index, readouts)
+        self.motion.keep(frame.index, motion, readouts)
         if decision.keyframe:
             self._add_keyframe(frame.index, full, level, c2w, first_of_submap, event)
         event.update(submap=len(self.submaps), gaussians=len(self.gmap),
@@ -168,57 +153,16 @@ class Slam:
                      stage_s=self._stages_since(totals_before))  # fmt: skip
         return event
 
-    def _depth_motion(self, frame: Frame) -> np.ndarray | None:
-        """The warp of this frame's depth image to its colour image's time, from the velocity
-        of the last frame interval and the stamps' gap less `depth_time_lag`
-        (`align_depth_time`; None: nothing to move)."""
-        cfg = self.cfg
-        if not cfg.align_depth_time or frame.depth_timestamp is None or len(self.timestamps) < 2:
-            return None
-        before2 = self.poses[-2] if self.drifted_prev is None else self.drifted_prev
-        return depth_motion(before2, self.poses[-1], self.timestamps[-1] - self.timestamps[-2],
-                            frame.depth_time_offset - cfg.depth_time_lag)  # fmt: skip
-
-    def _readouts(self) -> tuple[float, float]:
-        """The colour and the depth image's readouts (s; None: no store resolved them, 0); the
-        depth's only when it is read out apart (`separate_readouts`), else 0."""
-        cfg = self.cfg
-        depth = cfg.depth_rolling_shutter_readout if separate_readouts(cfg) else None
-        return cfg.rolling_shutter_readout or 0.0, depth or 0.0
-
-    def _readout_active(self) -> bool:
-        return max(self._readouts()) > 0
-
-    def _readout_motions(self) -> ReadoutMotions:
-        """The camera's motion over the next frame's colour readout and, when read out apart,
-        its depth readout, at the last interval's velocity (None: a global shutter, or no
-        velocity yet)."""
-        if not self._readout_active() or len(self.timestamps) < 2:
-            return None, None
-        before2 = self.poses[-2] if self.drifted_prev is None else self.drifted_prev
-        interval = self.timestamps[-1] - self.timestamps[-2]
-        if not interval > 0:
-            return None, None
-        colour, depth = (interval_motion(before2, self.poses[-1], readout / interval)
-                         if readout > 0 else None for readout in self._readouts())  # fmt: skip
-        return colour, depth
-
-    def _keep_readouts(self, index: int, readouts: ReadoutMotions) -> None:
-        for kept, motion in zip((self.readout_motions, self.depth_readout_motions), readouts,
-                                strict=True):  # fmt: skip
-            if motion is not None:
-                kept[index] = motion
-
     def _rectify_first_keyframe(self, event: dict[str, Any]) -> np.ndarray:
         """Once the second frame gives the first velocity, map the first keyframe again from its
         rectified rows (no velocity was known when it was mapped): a map of raw rows would bias
         every rectified frame tracked against it. Returns the readout motion of that velocity,
         which the second frame shares (constant velocity)."""
         first, self.unrectified_first = self.unrectified_first, None
-        readouts = self._readout_motions()
-        self._keep_readouts(first.index, readouts)
+        readouts = self.motion.next_readout_motions(self.poses, self.timestamps)
+        self.motion.keep(first.index, readouts=readouts)
         _log_motions(event, "first_", {}, readouts)
-        level = self.prepare(first, self.depth_motions.get(first.index), readouts)[1]
+        level = self.prepare(first, self.motion.of_frame(first.index)[0], readouts)[1]
         with self.timings.measure("mapping"):
             self.gmap = GaussianMap()
             self.active_keyframes = [Keyframe(first.index, level, self.poses[0])]
@@ -231,7 +175,7 @@ class Slam:
         if not self.poses:
             return np.eye(4), None, None  # the first camera defines the world frame
         with self.timings.measure("tracking"):
-            init = self._initial_pose()
+            init = self.motion.initial_pose(self.poses)
             result = self.tracker.track(self.gmap, full, sensor_c, sensor_d,
                                         torch.linalg.inv(init))  # fmt: skip
             # C order always: LAPACK returns column-major, and a checkpoint restores row-major;
@@ -265,16 +209,6 @@ class Slam:
             self.mapping_calls += 1
             event.update(map_added=stats.added, map_pruned=stats.pruned, map_loss=stats.loss)
 
-    def _initial_pose(self) -> torch.Tensor:
-        """The next frame's constant-velocity start. After an injected drift it starts from the
-        drifted reference (the drift moved the new submap, not the camera's velocity) and
-        consumes it: call once per tracked frame."""
-        prev2 = self.poses[-2] if len(self.poses) > 1 else None
-        if self.drifted_prev is not None:
-            prev2, self.drifted_prev = self.drifted_prev, None
-        return constant_velocity(torch.from_numpy(self.poses[-1]),
-                                 None if prev2 is None else torch.from_numpy(prev2))  # fmt: skip
-
     def _stages_since(self, totals_before: dict[str, float]) -> dict[str, float]:
         """Seconds per stage since the run's totals were `totals_before` (the stages that ran)."""
         return {stage: total - totals_before[stage]
@@ -301,7 +235,7 @@ class Slam:
                 before = self.poses[-1]
                 self.poses[-1] = inject_drift(before, lc.inject_drift_deg, lc.inject_drift_m)
                 if self.poses[-1] is not before and len(self.poses) > 1:
-                    self.drifted_prev = self.poses[-1] @ np.linalg.inv(before) @ self.poses[-2]
+                    self.motion.drifted(before, self.poses[-1], self.poses[-2])
         return self.poses[-1]
 
     # --- end loop closure hook ----------------------------------------------------------------
@@ -323,10 +257,7 @@ class Slam:
         return {
             "poses": torch.from_numpy(poses),
             "timestamps": list(self.timestamps),
-            "depth_motions": {i: torch.from_numpy(m) for i, m in self.depth_motions.items()},
-            "readout_motions": {i: torch.from_numpy(m) for i, m in self.readout_motions.items()},
-            "depth_readout_motions": {i: torch.from_numpy(m)
-                                      for i, m in self.depth_readout_motions.items()},  # fmt: skip
+            **self.motion.state_dict(),
             "submaps": [asdict(s) for s in self.submaps],
             "keyframe_frames": list(self.keyframe_frames),
             "mapping_calls": self.mapping_calls,
@@ -341,20 +272,18 @@ class Slam:
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "loop_closure": self.loop_closer.state_dict(),
-            "drifted_prev": (None if self.drifted_prev is None
-                             else torch.from_numpy(self.drifted_prev)),  # fmt: skip
         }
 
     def load_state_dict(self, state: dict[str, Any], read_frame: Callable[[int], Frame]) -> None:
-        """Restore `state_dict`; `read_frame(i)` re-reads keyframe i of the active submap."""
+        """Restore `state_dict`; `read_frame(i)` re-reads keyframe i of the active submap. A
+        state an older version wrote (keys missing) is refused: start such a job over."""
+        if missing := sorted(set(self.state_dict()) - set(state)):
+            raise InputError(f"this job's checkpoint was made by an older version of bgs-batch "
+                             f"(it has no {', '.join(missing)}); start the job over with "
+                             "`bgs run --force`")  # fmt: skip
         self.poses = [np.ascontiguousarray(p) for p in state["poses"].numpy()]
-        # absent in checkpoints older than align_depth_time: their runs did not move depth
-        self.timestamps = [float(t) for t in state.get("timestamps", [])]
-        self.depth_motions = {int(i): np.ascontiguousarray(m.numpy())
-                              for i, m in state.get("depth_motions", {}).items()}  # fmt: skip
-        self.readout_motions, self.depth_readout_motions = (
-            {int(i): np.ascontiguousarray(m.numpy()) for i, m in state.get(key, {}).items()}
-            for key in ("readout_motions", "depth_readout_motions"))  # fmt: skip
+        self.timestamps = [float(t) for t in state["timestamps"]]
+        self.motion.load_state_dict(state)
         self.submaps = [SubmapRecord(**s) for s in state["submaps"]]
         self.keyframe_frames = list(state["keyframe_frames"])
         self.mapping_calls = int(state["mapping_calls"])
@@ -367,22 +296,16 @@ class Slam:
         self.sensor.load_state_dict(state["sensor"])
         self.sensor_opt.load_state_dict(state["sensor_opt"])
         self.selector.load_state_dict(state["selector"])
-        if "tracker" in state:  # absent in checkpoints older than init_err_ratio
-            self.tracker.load_state_dict(state["tracker"])
+        self.tracker.load_state_dict(state["tracker"])
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
-        if "loop_closure" in state:  # absent in older checkpoints
-            self.loop_closer.load_state_dict(state["loop_closure"])
-        if len(self.poses) == 1 and self._readout_active():  # stopped before the second frame
+        self.loop_closer.load_state_dict(state["loop_closure"])
+        if len(self.poses) == 1 and self.motion.readout_active():  # stopped before frame 1
             self.unrectified_first = read_frame(0)
-        drifted = state.get("drifted_prev")
-        self.drifted_prev = None if drifted is None else np.ascontiguousarray(drifted.numpy())
 
     def prepare_index(self, index: int, read_frame: Callable[[int], Frame]) -> tuple[Level, Level]:
         """Frame `index` from the store, prepared as when it was tracked."""
-        return self.prepare(read_frame(index), self.depth_motions.get(index),
-                            (self.readout_motions.get(index),
-                             self.depth_readout_motions.get(index)))  # fmt: skip
+        return self.prepare(read_frame(index), *self.motion.of_frame(index))
 
     def global_stage(self, poses: np.ndarray, read_frame: Callable[[int], Frame]
                      ) -> GlobalMapStage:  # fmt: skip

@@ -199,21 +199,22 @@ def test_drift_moves_the_new_submap_rigidly_not_the_velocity(tmp_path):
     drift = drifted @ np.linalg.inv(current)
     assert not np.allclose(drift, np.eye(4))
     # the previous pose moved with the new submap: the relative motion is the tracked one
-    np.testing.assert_allclose(np.linalg.inv(slam.drifted_prev) @ drifted,
+    motion = slam.motion
+    np.testing.assert_allclose(np.linalg.inv(motion.drifted_prev) @ drifted,
                                np.linalg.inv(before) @ current, atol=1e-12)  # fmt: skip
-    reference = slam.drifted_prev
+    reference = motion.drifted_prev
     undrifted = constant_velocity(torch.from_numpy(current), torch.from_numpy(before))
-    np.testing.assert_allclose(slam._initial_pose().numpy(), drift @ undrifted.numpy(),
+    np.testing.assert_allclose(motion.initial_pose(slam.poses).numpy(), drift @ undrifted.numpy(),
                                atol=1e-12)  # fmt: skip
-    assert slam.drifted_prev is None  # used once
-    slam.drifted_prev = reference
+    assert motion.drifted_prev is None  # used once
+    motion.drifted_prev = reference
 
     restored = Slam(cfg, slam.intrinsics, tmp_path)
     restored.load_state_dict(slam.state_dict(), read_frame=lambda i: None)
-    assert np.array_equal(restored.drifted_prev, slam.drifted_prev)
-    slam.drifted_prev = None
+    assert np.array_equal(restored.motion.drifted_prev, motion.drifted_prev)
+    motion.drifted_prev = None
     restored.load_state_dict(slam.state_dict(), read_frame=lambda i: None)
-    assert restored.drifted_prev is None
+    assert restored.motion.drifted_prev is None
 
 
 # ----------------------------------------------------------------------- recognition

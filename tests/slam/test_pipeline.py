@@ -230,13 +230,14 @@ def test_the_depth_gap_is_the_stamps_difference_less_the_drivers_lag(tmp_path):
         cfg = load_config("cpu", ["align_depth_time=true", f"depth_time_lag={lag}"])
         slam = Slam(cfg, np.eye(3), tmp_path)
         slam.poses, slam.timestamps = [np.eye(4), step], [0.0, 1 / 30]
-        assert slam._depth_motion(frame(None)) is None  # taken together: nothing to move
-        motion = slam._depth_motion(frame(2 / 30 + 0.02))
+        assert slam.motion.next_depth_motion(frame(None), slam.poses, slam.timestamps) is None
+        motion = slam.motion.next_depth_motion(frame(2 / 30 + 0.02), slam.poses, slam.timestamps)
         gaps[lag] = motion[0, 3] / 0.03 / 30  # the camera moved this many seconds' worth
     assert gaps == pytest.approx({0.0: 0.02, 0.01: 0.01})
     off = Slam(load_config("cpu"), np.eye(3), tmp_path)
     off.poses, off.timestamps = [np.eye(4), step], [0.0, 1 / 30]
-    assert off._depth_motion(frame(2 / 30 + 0.02)) is None  # the presets take pairs as paired
+    # the presets take pairs as paired
+    assert off.motion.next_depth_motion(frame(2 / 30 + 0.02), off.poses, off.timestamps) is None
 
 
 @pytest.fixture(scope="module")
@@ -283,4 +284,17 @@ def test_a_run_stopped_after_its_first_frame_rectifies_it_when_resumed(rolling_s
         a, b = whole.process(store[k]), resumed.process(store[k])
         assert a["pose"] == b["pose"]
         assert a.get("first_readout_motion") == b.get("first_readout_motion")
-    assert 0 in resumed.readout_motions and resumed.unrectified_first is None
+    assert 0 in resumed.motion.readout_motions and resumed.unrectified_first is None
+
+
+def test_a_checkpoint_of_an_older_version_is_refused_by_name(tmp_path):
+    from bgs_batch.errors import InputError
+    from bgs_batch.slam import Slam
+
+    cfg = load_config("cpu")
+    state = Slam(cfg, np.eye(3), tmp_path).state_dict()
+    del state["tracker"], state["drifted_prev"]
+    with pytest.raises(InputError, match=r"older version of bgs-batch \(it has no drifted_prev, "
+                                         r"tracker\); start the job over with `bgs run --force`"):
+        Slam(cfg, np.eye(3), tmp_path).load_state_dict(state, read_frame=lambda i: None)
+
