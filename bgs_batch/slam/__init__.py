@@ -3,7 +3,8 @@
 `Slam` (`pipeline`) consumes a sequence frame by frame. Before the first frame, a camera the
 store does not know has its rolling-shutter readout estimated from the first frames
 (`readout`). The camera's constant-velocity motion, and the motions each frame was prepared
-with, are kept by `camera_motion`. Per frame:
+with, are kept by `camera_motion`; what the run records per frame (stage seconds, poses and
+motions in the log) by `run_record`. Per frame:
 
 1. frame → levels (`frames`): crop the border, clip far depth, move the depth image to the
    colour image's instant (`depth_timing`) and a rolling shutter's rows to one instant

@@ -1,16 +1,23 @@
-"""The SLAM system: per frame, track → (maybe) start a submap → select keyframe → map.
+"""The conductor of a SLAM run: the stages in order, each one an object or function of its own.
 
-`Slam.process` consumes frames in order and returns one log event per frame. All state lives in
-this object (poses, the active submap and its keyframes, the sensor network and its optimiser,
-the keyframe selector, the random generator), so a job can checkpoint and resume it. Finished
-submaps are frozen and written to disk, so memory stays bounded. Ground truth is never read.
+`Slam.process` takes one frame through the per-frame stages and returns its log event:
+
+1. prepare (`frames.prepare_frame`, moved by the motions `camera_motion` predicts);
+2. track (`tracking.Tracker`);
+3. switch submap? (`submaps.exceeds_motion`, `submaps.freeze_submap`), then close loops
+   (`loop_closure.LoopCloser`);
+4. keyframe? (`keyframes.KeyframeSelector`);
+5. map (`mapping.Mapper`).
+
+At the end `Slam.finish`, `Slam.trajectory` and `Slam.global_stage` call the end-of-run stages
+(`end_of_run`, `global_map`). The state lives in this object and its stages' objects, each with
+its own ``state_dict``, so a job can checkpoint and resume bit for bit; finished submaps are
+frozen to disk, so memory stays bounded. Ground truth is never read.
 """
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,49 +41,12 @@ from bgs_batch.slam.global_map import GlobalMapStage, merge_submaps, split_frame
 from bgs_batch.slam.keyframes import KeyframeSelector
 from bgs_batch.slam.loop_closure import LoopCloser, inject_drift
 from bgs_batch.slam.mapping import Keyframe, Mapper
+from bgs_batch.slam.run_record import Timings, log_motions, logged_rows
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
 from bgs_batch.slam.smoothing import SmoothingReport
 from bgs_batch.slam.submaps import SubmapRecord, exceeds_motion, freeze_submap
 from bgs_batch.slam.tracking import Tracker
 from bgs_batch.store import Frame
-
-
-@dataclass
-class Timings:
-    """Seconds spent per stage, summed over the run."""
-
-    tracking: float = 0.0
-    mapping: float = 0.0
-    sensor: float = 0.0
-    submaps: float = 0.0
-    loop_closure: float = 0.0  # features, detection, registration, pose graph
-    refinement: float = 0.0  # uncertainty refinement of the frozen submaps at the end
-    global_map: float = 0.0  # the global stage: merge and optimisation (`global_map`)
-
-    def add(self, stage: str, seconds: float) -> None:
-        setattr(self, stage, getattr(self, stage) + seconds)
-
-    @contextmanager
-    def measure(self, stage: str) -> Iterator[None]:
-        """Add the wall time of the ``with`` body to `stage`."""
-        start = time.perf_counter()
-        yield
-        self.add(stage, time.perf_counter() - start)
-
-
-def logged_rows(transform: np.ndarray) -> list[float]:
-    """A 4×4 rigid transform as ``log.jsonl`` holds it: its top three rows (read back by
-    `outputs.jobfiles`)."""
-    return [float(x) for x in transform[:3].ravel()]
-
-
-def _log_motions(event: dict[str, Any], prefix: str, motions: dict[str, np.ndarray | None],
-                 readouts: ReadoutMotions) -> None:  # fmt: skip
-    """Put the motions that move a frame's images into its log event (for the exports)."""
-    named = {**motions, "readout_motion": readouts[0], "depth_readout_motion": readouts[1]}
-    for key, value in named.items():
-        if value is not None:
-            event[prefix + key] = logged_rows(value)
 
 
 @dataclass
@@ -126,7 +96,7 @@ class Slam:
         full, level = self.prepare(frame, motion, readouts)
         event: dict[str, Any] = {"frame": frame.index, "timestamp": frame.timestamp}
         # the exports prepare the frame the same way from the log
-        _log_motions(event, "", {"depth_motion": motion}, readouts)
+        log_motions(event, "", {"depth_motion": motion}, readouts)
         with self.timings.measure("sensor"), torch.no_grad():
             scale = self.cfg.uncertainty.sensor_downscale
             sensor_c, sensor_d = self.sensor(level, scale)
@@ -136,7 +106,7 @@ class Slam:
         if self.unrectified_first is not None and len(self.poses) == 2:
             readouts = self._rectify_first_keyframe(event)
             full, level = self.prepare(frame, motion, readouts)
-            _log_motions(event, "", {}, readouts)
+            log_motions(event, "", {}, readouts)
         elif not self.poses[:-1] and self.motion.readout_active():
             self.unrectified_first = frame
         first_of_submap = not self.active_keyframes
@@ -161,7 +131,7 @@ class Slam:
         first, self.unrectified_first = self.unrectified_first, None
         readouts = self.motion.next_readout_motions(self.poses, self.timestamps)
         self.motion.keep(first.index, readouts=readouts)
-        _log_motions(event, "first_", {}, readouts)
+        log_motions(event, "first_", {}, readouts)
         level = self.prepare(first, self.motion.of_frame(first.index)[0], readouts)[1]
         with self.timings.measure("mapping"):
             self.gmap = GaussianMap()
