@@ -759,8 +759,9 @@ def status(jobs: tuple[Path, ...], as_json: bool) -> None:
         if statuses:
             Console().print(table)
         for s in statuses:
-            if s.readout:
-                click.echo(f"{s.job}: {s.readout}")
+            for line in (s.readout, s.colour_offset):
+                if line:
+                    click.echo(f"{s.job}: {line}")
     for err in problems[:-1]:
         click.echo(f"Error: {err}", err=True)
     if problems:

@@ -470,6 +470,42 @@ class ReadoutEstimationConfig:
 
 
 @dataclass
+class ColourOffsetConfig:
+    """The colour camera's rotation and focal length against the depth camera's, which the run
+    undoes by resampling each colour image onto the depth camera (`bgs_batch.slam.colour_offset`,
+    docs/method.md §6): set by hand, or estimated from the first frames when ``estimate``."""
+
+    # the colour camera as seen from the depth camera: a rotation vector in degrees ...
+    rotation_x_deg: float = setting(0.0, Range(-10, 10), "colour camera's rotation about x (°)")
+    rotation_y_deg: float = setting(0.0, Range(-10, 10), "... about y (°)")
+    rotation_z_deg: float = setting(0.0, Range(-10, 10), "... about z (°)")
+    focal_ratio: float = setting(
+        1.0, Range(0.5, 2), "the colour camera's focal length over the depth camera's")
+    estimate: bool = setting(
+        False, "estimate the four from the first frames, unless they are set (--set)")
+    frames: int = setting(60, Range(3), "the first frames the estimate uses")
+    pair_gap: int = setting(6, COUNT, "frames between the two of a pair")
+    pair_stride: int = setting(5, COUNT, "frames between the first frames of two pairs")
+    min_pairs: int = setting(4, Range(2), "fewer pairs: no estimate (the images stay as they are)")
+    min_width: int = setting(
+        256, COUNT, "register and compare the frames at the largest downscale leaving this many "
+        "pixels across")
+    # the estimate is kept only where the pairs agree and it stands out of their spread: on
+    # registered synthetic rooms the pairs agree to 0.1° and the estimate is below it; on real
+    # registered Kinect frames the pairs disagree by degrees (docs/experiments.md)
+    max_standard_error_deg: float = setting(
+        0.25, POSITIVE, "no estimate when the pairs' rotations scatter more (standard error, °)")
+    max_focal_standard_error: float = setting(
+        0.005, POSITIVE, "... or their focal ratios (standard error)")
+    min_rotation_deg: float = setting(
+        0.25, NON_NEGATIVE, "a smaller rotation is kept as none (°) ...")
+    min_focal_change: float = setting(
+        0.005, NON_NEGATIVE, "... and a focal ratio closer to 1 as 1")
+    significance: float = setting(
+        3.0, POSITIVE, "an estimate is kept when it exceeds this many standard errors")
+
+
+@dataclass
 class Config:
     """A whole SLAM run."""
 
@@ -520,6 +556,7 @@ class Config:
     smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
     global_map: GlobalMapConfig = field(default_factory=GlobalMapConfig)
     readout_estimation: ReadoutEstimationConfig = field(default_factory=ReadoutEstimationConfig)
+    colour_offset: ColourOffsetConfig = field(default_factory=ColourOffsetConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -595,6 +632,9 @@ PRESETS: dict[str, dict[str, Any]] = {
         "seeding.new_submap_points": 30_000,
         "seeding.new_submap_gradient_points": 15_000,
         "seeding.new_frame_points": 10_000,
+        # a colour camera that does not sit on its depth camera is found from the first frames
+        # and resampled onto it; registered cameras are kept as they are (docs/method.md §6)
+        "colour_offset.estimate": True,
     },
 }
 DEFAULT_PRESET = "cpu"
@@ -682,6 +722,18 @@ def for_store(config: Config, store: StoreFacts) -> tuple[Config, dict[str, str]
         resolved = dataclasses.replace(resolved, **{key: store.depth_rolling_shutter_readout})
         sources[key] = f"the store's value ({store.path.name}; `bgs inspect`)"
     return resolved, sources
+
+
+def colour_offset_set(config: Config) -> bool:
+    """True when the config moves the colour image onto the depth camera (an offset set by hand,
+    or filled in from the run's estimate)."""
+    c = config.colour_offset
+    return (c.rotation_x_deg, c.rotation_y_deg, c.rotation_z_deg, c.focal_ratio) != (0, 0, 0, 1)
+
+
+def needs_colour_offset(config: Config) -> bool:
+    """True when a run must estimate the colour camera's offset from its frames."""
+    return config.colour_offset.estimate and not colour_offset_set(config)
 
 
 def needs_readout(config: Config) -> bool:

@@ -30,15 +30,16 @@ from collections.abc import Callable
 from contextlib import suppress
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numba
 import torch
 
 from bgs_batch.atomic import atomic_file, remove_temporaries, save_torch, write_text
-from bgs_batch.config import Config, check_crop, for_store, needs_readout
+from bgs_batch.config import Config, check_crop, for_store, needs_colour_offset, needs_readout
 from bgs_batch.metrics import ate
 from bgs_batch.slam import Slam
+from bgs_batch.slam.colour_offset import ColourOffsetEstimate, estimate_colour_offset
 from bgs_batch.slam.global_map import GlobalMapStage
 from bgs_batch.slam.readout import ReadoutEstimate, estimate_readout
 from bgs_batch.store import FrameStore
@@ -62,15 +63,18 @@ class RunSummary:
     trajectory_smoothing: dict[str, float] | None = None
     global_map: dict[str, int] | None = None  # `GlobalMapStage.summary`
     readout: dict[str, Any] | None = None  # `ReadoutEstimate.as_dict`, when it was estimated
+    colour_offset: dict[str, Any] | None = None  # `ColourOffsetEstimate.as_dict`, likewise
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
+Estimate = TypeVar("Estimate", ReadoutEstimate, ColourOffsetEstimate)
 ERROR_FILE = "error.json"
 SENSOR_FILE = "sensor_net.pt"
 GLOBAL_MAP_FILE = "global_map.pt"
 READOUT_FILE = "readout.json"
+COLOUR_OFFSET_FILE = "colour_offset.json"
 READOUT_SETTINGS = ("rolling_shutter_readout", "depth_rolling_shutter_readout")
 SUMMARY_FILE = "summary.json"
 LOG_FILE = "log.jsonl"
@@ -159,6 +163,11 @@ def _run(
                                   for key in READOUT_SETTINGS})  # fmt: skip
             if stop.requested:  # during the estimate: kept in readout.json, no frame to save
                 raise Preempted(stop.requested, "after the readout estimate", job_dir)
+        colour = _colour_offset(store, job_dir, cfg, n) if needs_colour_offset(cfg) else None
+        if colour is not None:  # needs the readout: the estimate rectifies the frames with it
+            cfg = colour.applied_to(cfg)
+            if stop.requested:
+                raise Preempted(stop.requested, "after the colour offset estimate", job_dir)
         slam = Slam(cfg, store.intrinsics, job_dir / SUBMAP_DIR)
         done, previous_seconds, stage_state = _resume(slam, store, job_dir)
         start = time.perf_counter() - previous_seconds
@@ -209,6 +218,7 @@ def _run(
         trajectory_smoothing=smoothing.as_dict() if smoothing else None,
         global_map=stage.summary(),
         readout=None if readout is None else readout.as_dict(),
+        colour_offset=None if colour is None else colour.as_dict(),
     )
     write_text(job_dir / SUMMARY_FILE, json.dumps(summary.as_dict(), indent=2))
     return summary
@@ -221,25 +231,53 @@ def _frames_to_run(store: FrameStore, max_frames: int | None) -> int:
 def _readout(store: FrameStore, job_dir: Path, cfg: Config, n: int) -> ReadoutEstimate:
     """The readout estimated from the store's first frames (`estimate_readout`), made once per
     job and kept in ``readout.json``, so that a resumed run uses the same value."""
-    path = job_dir / READOUT_FILE
-    if (recorded := read_readout(job_dir)) is not None:
-        return recorded
-    if path.exists():  # damaged by hand: estimated again (the same frames give the same value)
-        log.warning("%s is not a readout estimate; estimating it again", path)
     log.info("estimating the rolling-shutter readout from the first %d frames",
              min(n, cfg.readout_estimation.frames))  # fmt: skip
-    estimate = estimate_readout(store.__getitem__, store.timestamps[:n], store.intrinsics, cfg)
-    log.warning("%s", estimate.reason)
-    write_text(path, json.dumps(estimate.as_dict(), indent=2))
-    return estimate
+    return _estimate_once(job_dir / READOUT_FILE, ReadoutEstimate.from_dict, lambda: (
+        estimate_readout(store.__getitem__, store.timestamps[:n], store.intrinsics, cfg)))
+
+
+def _colour_offset(store: FrameStore, job_dir: Path, cfg: Config, n: int
+                   ) -> ColourOffsetEstimate:  # fmt: skip
+    """The colour camera's offset estimated from the store's first frames
+    (`estimate_colour_offset`), made once per job and kept in ``colour_offset.json``."""
+    log.info("estimating the colour camera's offset from the first %d frames",
+             min(n, cfg.colour_offset.frames))  # fmt: skip
+    return _estimate_once(job_dir / COLOUR_OFFSET_FILE, ColourOffsetEstimate.from_dict, lambda: (
+        estimate_colour_offset(store.__getitem__, store.timestamps[:n], store.intrinsics, cfg)))
+
+
+def _estimate_once(path: Path, parse: Callable[[dict], Estimate],
+                   estimate: Callable[[], Estimate]) -> Estimate:  # fmt: skip
+    """A sensor property estimated from the frames once per job: read back from `path` when a
+    run before made it (a resumed run uses the same value), else estimated, logged and kept;
+    a damaged file is estimated again (the same frames give the same value)."""
+    if (recorded := read_estimate(path, parse)) is not None:
+        return recorded
+    if path.exists():
+        log.warning("%s does not hold an estimate; estimating it again", path)
+    found = estimate()
+    log.warning("%s", found.reason)
+    write_text(path, json.dumps(found.as_dict(), indent=2))
+    return found
+
+
+def read_estimate(path: Path, parse: Callable[[dict], Estimate]) -> Estimate | None:
+    """The estimate kept in `path`; None when there is none, or one that does not parse."""
+    try:
+        return parse(json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
 
 
 def read_readout(job_dir: Path) -> ReadoutEstimate | None:
-    """The job's ``readout.json``; None when it has none, or one that does not parse."""
-    try:
-        return ReadoutEstimate.from_dict(json.loads((job_dir / READOUT_FILE).read_text()))
-    except (OSError, ValueError, TypeError, KeyError):
-        return None
+    """The job's ``readout.json`` (`read_estimate`)."""
+    return read_estimate(job_dir / READOUT_FILE, ReadoutEstimate.from_dict)
+
+
+def read_colour_offset(job_dir: Path) -> ColourOffsetEstimate | None:
+    """The job's ``colour_offset.json`` (`read_estimate`)."""
+    return read_estimate(job_dir / COLOUR_OFFSET_FILE, ColourOffsetEstimate.from_dict)
 
 
 def _optimise_global_map(slam: Slam, stage: GlobalMapStage, store: FrameStore,

@@ -10,7 +10,7 @@ from typing import Any
 from bgs_batch.errors import InputError
 from jobs.jobdir import JOB_FILE, lock_owner_alive
 from jobs.preemption import Preempted
-from jobs.run import ERROR_FILE, LOG_FILE, SUMMARY_FILE, read_readout
+from jobs.run import ERROR_FILE, LOG_FILE, SUMMARY_FILE, read_colour_offset, read_readout
 
 
 @dataclass(frozen=True)
@@ -22,6 +22,7 @@ class JobStatus:
     keyframes: int
     last_error: str | None
     readout: str | None = None  # the readout estimated from the frames (`readout.json`)
+    colour_offset: str | None = None  # the colour camera's, likewise (`colour_offset.json`)
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -67,6 +68,7 @@ def job_status(job_dir: Path) -> JobStatus:
         error = "ended without an error (killed?); running it again resumes"
     else:
         state = "new"
-    readout = read_readout(job_dir)
+    readout, colour = read_readout(job_dir), read_colour_offset(job_dir)
     return JobStatus(str(job_dir), state, frames, fps, keyframes, error,
-                     readout.reason if readout else None)  # fmt: skip
+                     readout.reason if readout else None,
+                     colour.reason if colour else None)  # fmt: skip

@@ -22,7 +22,14 @@ from bgs_batch.slam.loop_closure.correction import CORRECTION_KEY
 from bgs_batch.store import FrameStore
 from bgs_batch.trajectory_files import read_tum
 from jobs.jobdir import JOB_FILE, JobError, lock_owner_alive, store_entry
-from jobs.run import GLOBAL_MAP_FILE, LOG_FILE, SENSOR_FILE, SUBMAP_DIR, SUMMARY_FILE
+from jobs.run import (
+    GLOBAL_MAP_FILE,
+    LOG_FILE,
+    SENSOR_FILE,
+    SUBMAP_DIR,
+    SUMMARY_FILE,
+    read_colour_offset,
+)
 from outputs.trajectory import match_timestamps
 
 TRAJECTORY_FILE = "trajectory.txt"
@@ -128,9 +135,13 @@ class FinishedJob:
 
     @cached_property
     def config(self) -> Config:
-        """The run's resolved settings (job.json, else config.json; flat in older jobs)."""
+        """The run's resolved settings (job.json, else config.json; flat in older jobs), with
+        the colour offset the run estimated (``colour_offset.json``), so that the exports
+        prepare each frame as the run did."""
         data = self.record["config"] if self.record else self._json(CONFIG_FILE)
-        return config_from_dict(data.get("settings", data))
+        config = config_from_dict(data.get("settings", data))
+        offset = read_colour_offset(self.job_dir)
+        return config if offset is None else offset.applied_to(config)
 
     @cached_property
     def summary(self) -> dict[str, Any]:

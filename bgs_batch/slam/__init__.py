@@ -2,9 +2,11 @@
 
 `Slam` (`pipeline`) consumes a sequence frame by frame. Before the first frame, a camera the
 store does not know has its rolling-shutter readout estimated from the first frames
-(`readout`). The camera's constant-velocity motion, and the motions each frame was prepared
-with, are kept by `camera_motion`; what the run records per frame (stage seconds, poses and
-motions in the log) by `run_record`. Per frame:
+(`readout`), and a colour camera that does not sit on its depth camera its offset
+(`colour_offset`; each colour image is then resampled onto the depth camera,
+`colour_registration`). The camera's constant-velocity motion, and the motions each frame was
+prepared with, are kept by `camera_motion`; what the run records per frame (stage seconds, poses
+and motions in the log) by `run_record`. Per frame:
 
 1. frame → levels (`frames`): crop the border, clip far depth, move the depth image to the
    colour image's instant (`depth_timing`) and a rolling shutter's rows to one instant

@@ -12,8 +12,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from bgs_batch.config import Config, separate_readouts
+from bgs_batch.config import Config, colour_offset_set, separate_readouts
 from bgs_batch.render import Camera
+from bgs_batch.slam.colour_registration import register_colour
 from bgs_batch.slam.depth_timing import warp_depth
 from bgs_batch.slam.rolling_shutter import rectify, rectify_colour, rectify_depth
 from bgs_batch.store import Frame
@@ -33,10 +34,11 @@ def prepare_frame(frame: Frame, intrinsics: np.ndarray, cfg: Config,
                   readout_motion: np.ndarray | None = None,
                   depth_readout_motion: np.ndarray | None = None
                   ) -> tuple[Level, Level]:  # fmt: skip
-    """The frame at input resolution (its depth moved by `depth_motion` to the colour image's
-    time, `depth_timing`; its rows moved to one instant by the camera's motion over the
-    readout, `rolling_shutter`: `readout_motion` for both images, or for the colour image
-    alone and `depth_readout_motion` for the depth when the config reads them out apart,
+    """The frame at input resolution (its colour image resampled onto the depth camera when the
+    config has a colour offset, `colour_registration`; its depth moved by `depth_motion` to the
+    colour image's time, `depth_timing`; its rows moved to one instant by the camera's motion
+    over the readout, `rolling_shutter`: `readout_motion` for both images, or for the colour
+    image alone and `depth_readout_motion` for the depth when the config reads them out apart,
     `separate_readouts`; then cropped by ``crop_edge``, depth clipped) and at mapping
     resolution: what the SLAM and the exports see of a frame."""
     crop = cfg.crop_edge or 0  # `run_job` puts the store's crop in place of None
@@ -44,6 +46,8 @@ def prepare_frame(frame: Frame, intrinsics: np.ndarray, cfg: Config,
     if depth_motion is not None:
         depth = warp_depth(depth, intrinsics, depth_motion)
     rgb = frame.rgb
+    if colour_offset_set(cfg):  # onto the depth camera first: rectification reads its depth
+        rgb = register_colour(rgb, intrinsics, cfg.colour_offset)
     if separate_readouts(cfg):
         if readout_motion is not None:
             rgb = rectify_colour(rgb, depth, intrinsics, readout_motion)

@@ -76,9 +76,9 @@ def estimate_readout(read: Callable[[int], Frame], timestamps: np.ndarray,
     n = min(est.frames, len(timestamps))
     if n < 3:
         return _unknown(n, f"{n} frames: too few to see the camera turn")
-    level = _Levels(read, intrinsics, dataclasses.replace(cfg, rolling_shutter_readout=None),
+    level = FrameViews(read, intrinsics, dataclasses.replace(cfg, rolling_shutter_readout=None),
                     est.min_width)  # fmt: skip
-    poses = _chain(level, n, cfg)
+    poses = chain_poses(level, n, cfg)
     velocities = _angular_velocities(poses, timestamps[:n])
     pairs = _informative_pairs(velocities, est)
     if len(pairs) < est.min_pairs:
@@ -111,7 +111,7 @@ def _unknown(frames: int, reason: str) -> ReadoutEstimate:
     return ReadoutEstimate(None, None, frames, [], [], reason)
 
 
-class _Levels:
+class FrameViews:
     """Frames as registration views at the estimator's resolution, optionally rectified."""
 
     def __init__(self, read: Callable[[int], Frame], intrinsics: np.ndarray, cfg: Config,
@@ -126,15 +126,16 @@ class _Levels:
         return View.of(level.rgb, level.depth, level.camera)
 
 
-def _chain(level: _Levels, n: int, cfg: Config) -> np.ndarray:
+def chain_poses(level: FrameViews, n: int, cfg: Config, photometric: bool = True) -> np.ndarray:
     """Camera-to-world poses [n, 4, 4] of the first n frames, each registered to the one before
-    (streamed: two frames in memory)."""
+    (streamed: two frames in memory); by geometry alone when not `photometric`."""
     poses = [np.eye(4)]
     relative = torch.eye(4, dtype=torch.float64)
     previous = level.view(level.read(0))
     for i in range(1, n):
         current = level.view(level.read(i))
-        relative = register(current, previous, cfg.registration, relative).transform
+        relative = register(current, previous, cfg.registration, relative,
+                            photometric).transform
         poses.append(poses[-1] @ relative.numpy())
         previous = current
     return np.stack(poses)
@@ -172,19 +173,19 @@ def _informative_pairs(velocities: np.ndarray, est: ReadoutEstimationConfig
     return pairs
 
 
-def _pair_costs(level: _Levels, poses: np.ndarray, timestamps: np.ndarray, k: int, j: int,
+def _pair_costs(level: FrameViews, poses: np.ndarray, timestamps: np.ndarray, k: int, j: int,
                 candidates: np.ndarray, cfg: Config) -> np.ndarray:  # fmt: skip
     """The registration cost of frames j and k, both rectified at each candidate readout."""
     initial = torch.from_numpy(np.linalg.inv(poses[k]) @ poses[j])
     frame_j, frame_k = level.read(j), level.read(k)
     depth = level.cfg.depth_rolling_shutter_readout  # known, or None: the candidate's
-    depth_motions = [None if depth is None else _readout_motion(poses, timestamps, i, depth)
+    depth_motions = [None if depth is None else readout_motion_at(poses, timestamps, i, depth)
                      for i in (j, k)]  # fmt: skip
     costs, scales = [], None
     for readout in candidates:
-        source = level.view(frame_j, _readout_motion(poses, timestamps, j, readout),
+        source = level.view(frame_j, readout_motion_at(poses, timestamps, j, readout),
                             depth_motions[0])  # fmt: skip
-        target = level.view(frame_k, _readout_motion(poses, timestamps, k, readout),
+        target = level.view(frame_k, readout_motion_at(poses, timestamps, k, readout),
                             depth_motions[1])  # fmt: skip
         transform = register(source, target, cfg.registration, initial).transform
         geometric, photometric = residuals(source, target, cfg.registration, transform)
@@ -196,7 +197,7 @@ def _pair_costs(level: _Levels, poses: np.ndarray, timestamps: np.ndarray, k: in
     return np.array(costs)
 
 
-def _readout_motion(poses: np.ndarray, timestamps: np.ndarray, i: int, readout: float
+def readout_motion_at(poses: np.ndarray, timestamps: np.ndarray, i: int, readout: float
                     ) -> np.ndarray | None:  # fmt: skip
     """The camera's motion over frame i's readout at its central-difference velocity."""
     if readout == 0:

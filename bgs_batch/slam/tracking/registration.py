@@ -21,6 +21,7 @@ same transform.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -89,16 +90,19 @@ class Registration:
 
 
 def register(source: View, target: View, cfg: RegistrationConfig,
-             initial: torch.Tensor | None = None) -> Registration:  # fmt: skip
+             initial: torch.Tensor | None = None, photometric: bool = True
+             ) -> Registration:  # fmt: skip
     """Align `source` to `target` (same camera and size), coarse to fine from a level at most
-    ``cfg.coarsest_width`` pixels wide, from `initial` (the identity when None)."""
+    ``cfg.coarsest_width`` pixels wide, from `initial` (the identity when None); by the
+    point-to-plane term alone when not `photometric` (a colour image that may not sit on its
+    depth image cannot move the result)."""
     pyramid = [(source, target)]
     while pyramid[-1][0].camera.width > cfg.coarsest_width:
         pyramid.append((pyramid[-1][0].halved(), pyramid[-1][1].halved()))
     transform = torch.eye(4, dtype=torch.float64) if initial is None else initial.clone()
     steps = 0
     for level_source, level_target in reversed(pyramid):  # the finest last: `fit` reuses it
-        problem = _Problem(level_source, level_target, cfg)
+        problem = _Problem(level_source, level_target, cfg, photometric)
         scales = None
         for _ in range(cfg.iterations):
             step, scales = problem.step(transform, scales)
@@ -123,8 +127,10 @@ class _Problem:
     """One pyramid level: the source points and the target images the residuals read, as the
     float64 arrays of `registration_kernels`."""
 
-    def __init__(self, source: View, target: View, cfg: RegistrationConfig) -> None:
+    def __init__(self, source: View, target: View, cfg: RegistrationConfig,
+                 photometric: bool = True) -> None:  # fmt: skip
         self.cfg = cfg
+        self.photometric = photometric
         valid = source.depth > 0
         self.points = source.points()[valid].numpy()  # [N, 3]
         self.intensities = source.gray[valid].numpy()
@@ -151,13 +157,14 @@ class _Problem:
         if scales is None:
             geometric, photometric = self.residuals(transform)
             scales = (_robust_scale(geometric, GEOMETRIC_SCALE_FLOOR_M),
-                      _robust_scale(photometric, PHOTOMETRIC_SCALE_FLOOR))  # fmt: skip
+                      _robust_scale(photometric, PHOTOMETRIC_SCALE_FLOOR) if self.photometric
+                      else math.inf)  # an infinite scale: the term weighs nothing  # fmt: skip
         normal, rhs, used = kernels.normal_equations(
             self.points, self.intensities, transform.numpy(), *self.target, *scales, HUBER_K
         )
-        if used < JACOBIAN_COLUMNS:
-            return None, scales
         normal = torch.from_numpy(normal)
+        if used < JACOBIAN_COLUMNS or not float(torch.trace(normal)) > 0:  # nothing constrains it
+            return None, scales
         normal = normal + DAMPING * torch.trace(normal) * torch.eye(6, dtype=torch.float64)
         return -torch.linalg.solve(normal, torch.from_numpy(rhs)), scales
 

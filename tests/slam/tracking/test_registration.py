@@ -60,6 +60,21 @@ def test_a_known_3_degree_3_cm_offset_is_recovered(renderer, frame):
     assert start[0] > 2.9 and start[1] > 0.029  # the test starts where it says
 
 
+def test_without_the_photometric_term_the_colour_cannot_move_the_result(renderer):
+    c2w = camera_poses(CONFIG)[8]
+    offset = _offset(2.0, 0.02)
+    source, target = _view(renderer, c2w @ offset, 1), _view(renderer, c2w, 2)
+    noise = torch.from_numpy(np.random.default_rng(0).random(source.gray.shape))
+    scrambled = View(noise, source.depth, source.camera)
+    geometric = register(source, target, RegistrationConfig(), photometric=False)
+    assert torch.equal(register(scrambled, target, RegistrationConfig(),
+                                photometric=False).transform, geometric.transform)  # fmt: skip
+    assert not torch.equal(register(scrambled, target, RegistrationConfig()).transform,
+                           register(source, target, RegistrationConfig()).transform)  # fmt: skip
+    degrees, metres = _errors(geometric.transform, offset)
+    assert degrees < 0.2 and metres < 2e-3, (degrees, metres)
+
+
 def test_the_same_input_gives_the_same_transform(renderer):
     c2w = camera_poses(CONFIG)[8]
     source, target = _view(renderer, c2w @ _offset(2.0, 0.02), 1), _view(renderer, c2w, 2)
