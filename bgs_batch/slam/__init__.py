@@ -6,7 +6,7 @@ store does not know has its rolling-shutter readout estimated from the first fra
 (`colour_offset`; each colour image is then resampled onto the depth camera,
 `colour_registration`). The camera's constant-velocity motion, and the motions each frame was
 prepared with, are kept by `camera_motion`; what the run records per frame (stage seconds, poses
-and motions in the log) by `run_record`. Per frame:
+and motions in the log) by `run_record`; what a checkpoint holds by `run_state`. Per frame:
 
 1. frame → levels (`frames`): crop the border, clip far depth, move the depth image to the
    colour image's instant (`depth_timing`) and a rolling shutter's rows to one instant

@@ -26,7 +26,6 @@ import numpy as np
 import torch
 
 from bgs_batch.config import Config
-from bgs_batch.errors import InputError
 from bgs_batch.slam.adam import Adam
 from bgs_batch.slam.camera_motion import CameraMotion, ReadoutMotions
 from bgs_batch.slam.end_of_run import (
@@ -42,6 +41,7 @@ from bgs_batch.slam.keyframes import KeyframeSelector
 from bgs_batch.slam.loop_closure import LoopCloser, inject_drift
 from bgs_batch.slam.mapping import Keyframe, Mapper
 from bgs_batch.slam.run_record import Timings, log_motions, logged_rows
+from bgs_batch.slam.run_state import restore, state_of
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
 from bgs_batch.slam.smoothing import SmoothingReport
 from bgs_batch.slam.submaps import SubmapRecord, exceeds_motion, freeze_submap
@@ -220,58 +220,13 @@ class Slam:
         self.active_keyframes = []
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to continue bit for bit: tensors and plain Python values only
-        (``torch.load(weights_only=True)`` reads it). Keyframe images are not stored: they are
-        re-read from the frame store on load."""
-        poses = np.stack(self.poses) if self.poses else np.zeros((0, 4, 4))
-        return {
-            "poses": torch.from_numpy(poses),
-            "timestamps": list(self.timestamps),
-            **self.motion.state_dict(),
-            "submaps": [asdict(s) for s in self.submaps],
-            "keyframe_frames": list(self.keyframe_frames),
-            "mapping_calls": self.mapping_calls,
-            "timings": asdict(self.timings),
-            "gmap": self.gmap.state_dict(),
-            "active_keyframes": [k.frame for k in self.active_keyframes],
-            "submap_first_frame": self.submap_first_frame,
-            "sensor": self.sensor.state_dict(),
-            "sensor_opt": self.sensor_opt.state_dict(),
-            "selector": self.selector.state_dict(),
-            "tracker": self.tracker.state_dict(),
-            "rng": self.rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(),
-            "loop_closure": self.loop_closer.state_dict(),
-        }
+        """Everything needed to continue bit for bit (`run_state.state_of`)."""
+        return state_of(self)
 
     def load_state_dict(self, state: dict[str, Any], read_frame: Callable[[int], Frame]) -> None:
-        """Restore `state_dict`; `read_frame(i)` re-reads keyframe i of the active submap. A
-        state an older version wrote (keys missing) is refused: start such a job over."""
-        if missing := sorted(set(self.state_dict()) - set(state)):
-            raise InputError(f"this job's checkpoint was made by an older version of bgs-batch "
-                             f"(it has no {', '.join(missing)}); start the job over with "
-                             "`bgs run --force`")  # fmt: skip
-        self.poses = [np.ascontiguousarray(p) for p in state["poses"].numpy()]
-        self.timestamps = [float(t) for t in state["timestamps"]]
-        self.motion.load_state_dict(state)
-        self.submaps = [SubmapRecord(**s) for s in state["submaps"]]
-        self.keyframe_frames = list(state["keyframe_frames"])
-        self.mapping_calls = int(state["mapping_calls"])
-        self.timings = Timings(**state["timings"])
-        self.gmap = GaussianMap.from_state_dict(state["gmap"])
-        self.active_keyframes = [
-            self._reread_keyframe(i, read_frame) for i in state["active_keyframes"]
-        ]
-        self.submap_first_frame = int(state["submap_first_frame"])
-        self.sensor.load_state_dict(state["sensor"])
-        self.sensor_opt.load_state_dict(state["sensor_opt"])
-        self.selector.load_state_dict(state["selector"])
-        self.tracker.load_state_dict(state["tracker"])
-        self.rng.bit_generator.state = state["rng"]
-        torch.set_rng_state(state["torch_rng"])
-        self.loop_closer.load_state_dict(state["loop_closure"])
-        if len(self.poses) == 1 and self.motion.readout_active():  # stopped before frame 1
-            self.unrectified_first = read_frame(0)
+        """Restore `state_dict` (`run_state.restore`); `read_frame(i)` re-reads keyframe i of
+        the active submap."""
+        restore(self, state, read_frame)
 
     def prepare_index(self, index: int, read_frame: Callable[[int], Frame]) -> tuple[Level, Level]:
         """Frame `index` from the store, prepared as when it was tracked."""
@@ -289,9 +244,9 @@ class Slam:
         return GlobalMapStage(self.cfg, merged, poses, split, self.sensor, kept)
 
     def _keyframe_reader(self, read_frame: Callable[[int], Frame]) -> ReadKeyframe:
-        return lambda index: self._reread_keyframe(index, read_frame)
+        return lambda index: self.reread_keyframe(index, read_frame)
 
-    def _reread_keyframe(self, index: int, read_frame: Callable[[int], Frame]) -> Keyframe:
+    def reread_keyframe(self, index: int, read_frame: Callable[[int], Frame]) -> Keyframe:
         """Keyframe `index` from the store, prepared as when it was mapped."""
         return Keyframe(index, self.prepare_index(index, read_frame)[1], self.poses[index])
 
