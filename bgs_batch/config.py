@@ -476,9 +476,12 @@ class ColourOffsetConfig:
     docs/method.md §6): set by hand, or estimated from the first frames when ``estimate``."""
 
     # the colour camera as seen from the depth camera: a rotation vector in degrees ...
-    rotation_x_deg: float = setting(0.0, Range(-10, 10), "colour camera's rotation about x (°)")
-    rotation_y_deg: float = setting(0.0, Range(-10, 10), "... about y (°)")
-    rotation_z_deg: float = setting(0.0, Range(-10, 10), "... about z (°)")
+    rotation_x_deg: float = setting(
+        0.0, Range(-10, 10), "the colour camera's rotation vector, x (°; by hand or estimated)")
+    rotation_y_deg: float = setting(
+        0.0, Range(-10, 10), "the colour camera's rotation vector, y (°; by hand or estimated)")
+    rotation_z_deg: float = setting(
+        0.0, Range(-10, 10), "the colour camera's rotation vector, z (°; by hand or estimated)")
     focal_ratio: float = setting(
         1.0, Range(0.5, 2), "the colour camera's focal length over the depth camera's")
     estimate: bool = setting(
