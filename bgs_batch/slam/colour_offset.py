@@ -37,8 +37,8 @@ from scipy.optimize import minimize
 from scipy.spatial.transform import Rotation
 
 from bgs_batch.config import Config
-from bgs_batch.slam.readout import FrameViews, chain_poses, readout_motion_at
-from bgs_batch.slam.tracking.registration import View, register
+from bgs_batch.slam.readout import FrameViews, chain_poses, chain_views, readout_motion_at
+from bgs_batch.slam.tracking.registration import View
 from bgs_batch.store import Frame
 
 PARAMETERS = 4  # three rotation angles (°) and the focal ratio's logarithm
@@ -101,12 +101,7 @@ def estimate_colour_offset(read: Callable[[int], Frame], timestamps: np.ndarray,
         return _none(n, pairs, f"{n} frames: too few to compare the colour and depth images "
                                f"({len(pairs)} of {est.min_pairs} frame pairs)")  # fmt: skip
     views = _rectified_views(read, timestamps, intrinsics, cfg, n)
-    poses = [np.eye(4)]
-    relative = None
-    for i in range(1, n):
-        relative = register(views[i], views[i - 1], cfg.registration, relative,
-                            photometric=False).transform  # fmt: skip
-        poses.append(poses[-1] @ relative.numpy())
+    poses = chain_views(views, cfg, photometric=False)
     problems = [_PairCost(views[k], views[j], np.linalg.inv(poses[j]) @ poses[k])
                 for k, j in pairs]  # fmt: skip
     together = _fit(problems)

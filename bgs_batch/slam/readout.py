@@ -29,7 +29,7 @@ The estimate is made once, before the first frame is tracked, and kept for the w
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -129,14 +129,20 @@ class FrameViews:
 def chain_poses(level: FrameViews, n: int, cfg: Config, photometric: bool = True) -> np.ndarray:
     """Camera-to-world poses [n, 4, 4] of the first n frames, each registered to the one before
     (streamed: two frames in memory); by geometry alone when not `photometric`."""
+    return chain_views((level.view(level.read(i)) for i in range(n)), cfg, photometric)
+
+
+def chain_views(views: Iterable[View], cfg: Config, photometric: bool = True) -> np.ndarray:
+    """Camera-to-world poses [n, 4, 4] of a sequence of views, each registered to the one
+    before (`chain_poses`), the first at the identity."""
     poses = [np.eye(4)]
     relative = torch.eye(4, dtype=torch.float64)
-    previous = level.view(level.read(0))
-    for i in range(1, n):
-        current = level.view(level.read(i))
-        relative = register(current, previous, cfg.registration, relative,
-                            photometric).transform
-        poses.append(poses[-1] @ relative.numpy())
+    previous = None
+    for current in views:
+        if previous is not None:
+            relative = register(current, previous, cfg.registration, relative,
+                                photometric).transform  # fmt: skip
+            poses.append(poses[-1] @ relative.numpy())
         previous = current
     return np.stack(poses)
 
