@@ -700,7 +700,8 @@ def check(config: Config) -> None:
 
 def for_store(config: Config, store: StoreFacts) -> tuple[Config, dict[str, str]]:
     """The config with the store's values filled in where it leaves them open (None), and where
-    each such value came from (for ``config.json``)."""
+    each such value came from (for ``config.json``); a store whose depth is registered to colour
+    by calibration turns the colour offset's estimate off."""
     resolved, sources = config, {}
     for key, value in (("crop_edge", store.crop_edge),
                        ("rolling_shutter_readout", store.rolling_shutter_readout)):  # fmt: skip
@@ -724,6 +725,12 @@ def for_store(config: Config, store: StoreFacts) -> tuple[Config, dict[str, str]
     else:
         resolved = dataclasses.replace(resolved, **{key: store.depth_rolling_shutter_readout})
         sources[key] = f"the store's value ({store.path.name}; `bgs inspect`)"
+    if needs_colour_offset(config) and store.depth_registered:
+        # a calibrated registration leaves nothing for the frames to tell
+        offset = dataclasses.replace(config.colour_offset, estimate=False)
+        resolved = dataclasses.replace(resolved, colour_offset=offset)
+        sources["colour_offset.estimate"] = (f"off: {store.path.name} holds depth registered to "
+                                             "colour with the cameras' calibration")  # fmt: skip
     return resolved, sources
 
 
@@ -760,6 +767,7 @@ class StoreFacts(typing.Protocol):
     crop_edge: int
     rolling_shutter_readout: float
     depth_rolling_shutter_readout: float
+    depth_registered: bool
 
 
 def coarsest_factor(config: Config) -> int:

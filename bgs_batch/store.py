@@ -16,7 +16,10 @@ Layout::
                  the `cpu` preset moves them to one instant; absent = 0, a global shutter;
                  NaN = unknown: `bgs run` estimates it from the frames),
                  depth_rolling_shutter_readout (the depth image's, when it differs: absent =
-                 rolling_shutter_readout)
+                 rolling_shutter_readout),
+                 depth_registered (true: the recording or the converter registered depth to
+                 colour with the cameras' calibration; absent = false: `bgs run` checks the
+                 colour camera's offset from the frames)
 
 Frames are deflated in worker threads with ISA-L (5x faster than zlib at level 1, and it
 releases the GIL) and written as raw chunks, so conversion uses every core; the files stay plain
@@ -106,6 +109,9 @@ class StoreMeta:
     # s over which the rows are read out; 0: a global shutter; READOUT_UNKNOWN: not known
     rolling_shutter_readout: float = 0.0
     depth_rolling_shutter_readout: float | None = None  # the depth image's; None: the same
+    # True: depth was registered to colour with the cameras' calibration (by the recording's
+    # driver or by the converter); False: nobody says, `bgs run` estimates the colour offset
+    depth_registered: bool = False
     provenance: dict[str, Any] = field(default_factory=dict)
 
 
@@ -296,6 +302,8 @@ class FrameStoreWriter:
         depth = meta.depth_rolling_shutter_readout
         if depth is not None and not same_readout(depth, meta.rolling_shutter_readout):
             f.attrs["depth_rolling_shutter_readout"] = float(depth)
+        if meta.depth_registered:
+            f.attrs["depth_registered"] = True
         validate(f, self.tmp)
         f.close()
         commit(self.tmp, self.path)
@@ -430,6 +438,7 @@ class FrameStore:
         # the depth image's readout; stores before it and cameras reading both alike: the same
         self.depth_rolling_shutter_readout = float(self.attrs.get(
             "depth_rolling_shutter_readout", self.rolling_shutter_readout))  # fmt: skip
+        self.depth_registered = bool(self.attrs.get("depth_registered", False))
         self.provenance: dict[str, Any] = json.loads(self.attrs["provenance"])
         self._poses = self._file["pose_gt"][()] if "pose_gt" in self._file else None
         self._fast = _is_our_pipeline(self._rgb) and _is_our_pipeline(self._depth)

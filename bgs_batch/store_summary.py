@@ -35,6 +35,7 @@ class StoreSummary:
     crop_edge: int  # recommended border crop, pixels per side (`bgs run` applies it)
     rolling_shutter_readout: float  # s over which the rows are read out (0: global shutter)
     depth_rolling_shutter_readout: float  # the depth image's (the same unless its sensor differs)
+    depth_registered: bool  # registered to colour with the cameras' calibration
     source_format: str
     source_path: str
     sequence: str
@@ -87,6 +88,7 @@ def summarize(store: FrameStore) -> StoreSummary:
         crop_edge=store.crop_edge,
         rolling_shutter_readout=store.rolling_shutter_readout,
         depth_rolling_shutter_readout=store.depth_rolling_shutter_readout,
+        depth_registered=store.depth_registered,
         source_format=str(a["source_format"]),
         source_path=str(a["source_path"]),
         sequence=str(a["sequence"]),
@@ -121,6 +123,9 @@ def print_summary(summary: StoreSummary, console: Console | None = None) -> None
             "rolling_shutter_readout", "depth_rolling_shutter_readout")}
            if not same_readout(s.depth_rolling_shutter_readout, s.rolling_shutter_readout)
            else {}),  # fmt: skip
+        "depth registered": ("to colour, with the cameras' calibration" if s.depth_registered
+                             else "not known: `bgs run` estimates the colour camera's offset "
+                             "from the frames"),  # fmt: skip
         "created by": s.created_by,
     }
     rows |= {f"  {key}": str(value) for key, value in sorted(s.provenance.items())}

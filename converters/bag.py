@@ -142,6 +142,9 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
         has_gt=poses is not None,
         rolling_shutter_readout=READOUT_UNKNOWN if options.readout is None else options.readout,
         depth_rolling_shutter_readout=options.depth_readout,
+        # registered here, with the recorded extrinsic, or by the driver (the depth image has
+        # its own CameraInfo, equal to the colour's); otherwise nobody says: `bgs run` checks
+        depth_registered=registration is not None or depth_info not in (None, rgb_info),
         provenance=provenance,
     )
     # the reader's deserialiser keeps its registered types after the reader is closed

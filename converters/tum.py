@@ -57,6 +57,7 @@ class Camera:
     crop_edge_source: str = ""
     readout: float = 0.0  # s over which the rows are read out (0: global shutter)
     depth_readout: float | None = None  # the depth image's, when it differs (None: the same)
+    registered: bool = False  # the recordings register depth to colour with its calibration
 
     @property
     def matrix(self) -> np.ndarray:
@@ -68,13 +69,19 @@ class Camera:
 # the crops of the reference systems' TUM camera blocks: fr1 50 px and fr2 8 px in LoopSplat's
 # and the BayesianGS authors' configs; fr3, whose published images are already undistorted, 8 px
 # in SplaTAM's (LoopSplat crops fr3 by 50 px because it reuses the fr1 calibration there)
+# The benchmark's depth images are registered to the colour camera by the Kinect's driver
+# (OpenNI) with its factory calibration ("File Formats": "the depth images are already
+# registered w.r.t. the corresponding RGB images").
 TUM_CAMERAS: dict[str, Camera] = {
     "freiburg1": Camera((517.3, 516.5, 318.6, 255.3), (0.2624, -0.9531, -0.0054, 0.0026, 1.1633),
-                        50, "LoopSplat's and BayesianGS's TUM fr1 camera", KINECT_READOUT_S),
+                        50, "LoopSplat's and BayesianGS's TUM fr1 camera", KINECT_READOUT_S,
+                        registered=True),
     "freiburg2": Camera((520.9, 521.0, 325.1, 249.7), (0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
-                        8, "LoopSplat's and BayesianGS's TUM fr2 camera", KINECT_READOUT_S),
+                        8, "LoopSplat's and BayesianGS's TUM fr2 camera", KINECT_READOUT_S,
+                        registered=True),
     "freiburg3": Camera((535.4, 539.2, 320.1, 247.6), crop_edge=8,
-                        crop_edge_source="SplaTAM's TUM fr3 camera", readout=KINECT_READOUT_S),
+                        crop_edge_source="SplaTAM's TUM fr3 camera", readout=KINECT_READOUT_S,
+                        registered=True),
 }  # fmt: skip
 
 
@@ -202,6 +209,9 @@ def detect_camera(folder: Path, options: TumOptions) -> tuple[Camera, dict[str, 
                     readout=readouts[0], depth_readout=readouts[1])  # fmt: skip
     if found is not None and options.intrinsics is None:  # the calibration's crop comes along
         camera = replace(camera, crop_edge=found.crop_edge, crop_edge_source=found.crop_edge_source)
+    if found is not None and found.registered:  # the recording's, whatever intrinsics are passed
+        camera = replace(camera, registered=True)
+        provenance["depth_registered_source"] = f"{source}: registered by the Kinect's driver"
     return camera, provenance
 
 
@@ -361,6 +371,7 @@ def plan_tum(folder: Path, options: TumOptions) -> TumPlan:
         crop_edge=crop_edge,
         rolling_shutter_readout=camera.readout,
         depth_rolling_shutter_readout=camera.depth_readout,
+        depth_registered=camera.registered,
         provenance=provenance,
     )
     notes = (pairs.summary, *_depth_scale_warnings(median_depth, options.depth_scale))

@@ -538,6 +538,7 @@ def test_depth_from_another_camera_is_registered_via_tf_static(tmp_path):
         depth = store.read_depth_raw(0)
         assert store.provenance["depth_info_topic"] == "/cam/depth/camera_info"
         assert "depth_optical -> rgb_optical" in store.provenance["registration_extrinsic_source"]
+        assert store.depth_registered  # with the recorded extrinsic: no offset left to estimate
     shift = 80 * 0.05 / 1.5  # colour pixels: the wall's depth pixels land this far right
     assert np.all(depth[:, : int(shift) - 1] == 0) and np.all(depth[:, int(shift) + 1 :] == 1500)
 
@@ -558,6 +559,8 @@ def test_ground_truth_from_tf(tmp_path):
     assert_fails(convert(bag, out, "--pose-topic", "/tf"), "--pose-frame")
     result = convert(bag, out, "--pose-topic", "/tf", "--pose-frame", "camera")
     assert result.exit_code == 0, result.output
+    with FrameStore(out) as store:  # no depth CameraInfo: nobody says depth sits on colour
+        assert not store.depth_registered and "depth_registered" not in store.attrs
     with FrameStore(out) as store:
         poses = store.poses_gt
         assert store.provenance["gt_source"] == "/tf (camera)"

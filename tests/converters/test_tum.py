@@ -298,8 +298,12 @@ def test_the_rolling_shutter_readout_comes_from_the_camera_a_file_or_the_option(
     with FrameStore(tmp_path / "fr1.h5") as store:
         assert store.rolling_shutter_readout == pytest.approx(0.03)
         assert "rolling shutter" in store.provenance["rolling_shutter_readout_source"]
+        assert store.depth_registered  # the benchmark's driver registered depth to colour
+        assert "registered" in store.provenance["depth_registered_source"]
     shown = CliRunner().invoke(main, ["inspect", str(tmp_path / "fr1.h5")])
     assert "rows read out over 30.0 ms" in shown.output
+    shown = CliRunner().invoke(main, ["inspect", "--json", str(tmp_path / "fr1.h5")])
+    assert json.loads(shown.output)["depth_registered"] is True
     assert convert(fr1, tmp_path / "gs.h5", "--readout", "0").exit_code == 0
     with FrameStore(tmp_path / "gs.h5") as store:  # 0: global shutter, no attribute written
         assert store.rolling_shutter_readout == 0 and "rolling_shutter_readout" not in store.attrs
@@ -308,11 +312,13 @@ def test_the_rolling_shutter_readout_comes_from_the_camera_a_file_or_the_option(
     assert convert(other, tmp_path / "other.h5").exit_code == 0
     with FrameStore(tmp_path / "other.h5") as store:  # an unknown camera: the run estimates it
         assert math.isnan(store.rolling_shutter_readout)
+        assert not store.depth_registered  # and checks its colour camera's offset
         assert "estimates it" in store.provenance["rolling_shutter_readout_source"]
     shown = CliRunner().invoke(main, ["inspect", str(tmp_path / "other.h5")])
     assert "unknown: `bgs run` estimates" in " ".join(shown.output.split())
     shown = CliRunner().invoke(main, ["inspect", "--json", str(tmp_path / "other.h5")])
     assert json.loads(shown.output)["rolling_shutter_readout"] is None
+    assert json.loads(shown.output)["depth_registered"] is False
     (other / "readout.txt").write_text("0.03 0\n")  # `bgs synth --global-shutter-depth`
     assert convert(other, tmp_path / "mixed.h5").exit_code == 0
     with FrameStore(tmp_path / "mixed.h5") as store:  # colour rolling, depth taken at once

@@ -5,11 +5,14 @@ job and seen by the exports."""
 
 import dataclasses
 import json
+import shutil
+from types import SimpleNamespace
 
+import h5py
 import numpy as np
 import pytest
 
-from bgs_batch.config import ColourOffsetConfig, for_store, load_config
+from bgs_batch.config import ColourOffsetConfig, for_store, load_config, needs_colour_offset
 from bgs_batch.slam.colour_offset import estimate_colour_offset
 from bgs_batch.slam.colour_registration import register_colour
 from bgs_batch.store import FrameStore
@@ -109,3 +112,28 @@ def test_a_run_estimates_once_records_it_and_the_exports_see_it(rooms, tmp_path)
     assert not (tmp_path / "hand" / COLOUR_OFFSET_FILE).exists()
     assert dataclasses.asdict(FinishedJob(tmp_path / "hand").config.colour_offset)[
         "rotation_y_deg"] == -1.5
+    # a store whose depth the recording registered to colour (TUM, aligned bag topics) is
+    # taken at its word: nothing to estimate, and config.json says why
+    registered = tmp_path / "registered.h5"
+    shutil.copy(rooms["misreg"], registered)
+    with h5py.File(registered, "a") as f:
+        f.attrs["depth_registered"] = True
+    run_job(registered, tmp_path / "reg", load_config("cpu", tiny), max_frames=3)
+    assert not (tmp_path / "reg" / COLOUR_OFFSET_FILE).exists()
+    sources = json.loads((tmp_path / "reg" / "config.json").read_text())["sources"]
+    assert "registered" in sources["colour_offset.estimate"]
+
+
+def test_a_registered_store_turns_the_estimate_off_unless_the_offset_is_set_by_hand(tmp_path):
+    def facts(registered):
+        return SimpleNamespace(path=tmp_path / "s.h5", crop_edge=0, rolling_shutter_readout=0.0,
+                               depth_rolling_shutter_readout=0.0, depth_registered=registered)
+
+    store = facts(True)
+    cfg, sources = for_store(load_config("cpu"), store)
+    assert not needs_colour_offset(cfg) and "s.h5" in sources["colour_offset.estimate"]
+    cfg, sources = for_store(load_config("cpu"), facts(False))
+    assert needs_colour_offset(cfg) and "colour_offset.estimate" not in sources
+    hand = load_config("cpu", ["colour_offset.rotation_x_deg=0.5"])
+    cfg, sources = for_store(hand, store)  # the hand-set offset stays applied
+    assert cfg.colour_offset == hand.colour_offset and "colour_offset.estimate" not in sources
