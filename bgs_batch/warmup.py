@@ -25,14 +25,16 @@ WIDTH, HEIGHT = 128, 96
 
 def warm_up(workdir: Path) -> float:
     """Run every compiled stage once inside `workdir`; returns the seconds it took."""
-    from converters.synthetic import SynthConfig, synthesize
+    from converters.synthetic import EFFECTS, SynthConfig, synthesize
     from converters.tum import TumOptions, convert_tum
     from jobs.run import run_job
     from outputs.export import RUN_DEFAULTS, export_job
 
     start = time.perf_counter()
-    sequence = synthesize(workdir / "sequence", SynthConfig(frames=FRAMES, width=WIDTH,
-                                                            height=HEIGHT))  # fmt: skip
+    # a rolling shutter (the Kinect's), so that the rectification's kernels compile too
+    config = SynthConfig(frames=FRAMES, width=WIDTH, height=HEIGHT,
+                         readout=EFFECTS["rolling_shutter"]["readout"])  # fmt: skip
+    sequence = synthesize(workdir / "sequence", config)
     store = convert_tum(sequence, workdir / "sequence.h5", TumOptions())
     run_job(store, workdir / "job", load_config())
     export_job(workdir / "job", RUN_DEFAULTS)

@@ -10,7 +10,8 @@ and motions in the log) by `run_record`; what a checkpoint holds by `run_state`.
 
 1. frame → levels (`frames`): crop the border, clip far depth, move the depth image to the
    colour image's instant (`depth_timing`) and a rolling shutter's rows to one instant
-   (`rolling_shutter`), build the input and mapping resolutions;
+   (`rolling_shutter`, its per-pixel loops in `rolling_shutter_kernels`), build the input and
+   mapping resolutions;
 2. track (`tracking`): the camera pose from a constant-velocity guess corrected by dense
    registration, refined on the uncertainty-normalised L1 of colour and depth (Eq. 15-17;
    `losses.tracking_loss`, fused kernels in `loss_kernels`) against the active submap's render

@@ -21,6 +21,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from bgs_batch.slam.rolling_shutter_kernels import moved_depth, source_maps
+
 # four neighbouring readings further apart than this share of the nearest are not one surface
 SURFACE_SPREAD = 0.05
 
@@ -65,31 +67,20 @@ def rectify_depth(depth: np.ndarray, intrinsics: np.ndarray, readout_motion: np.
 
 class _Sources:
     """Where each rectified pixel's reading came from in the raw image, and each raw row's
-    motion to the middle of the readout."""
+    motion to the middle of the readout (`rolling_shutter_kernels`)."""
 
     def __init__(self, depth: np.ndarray, intrinsics: np.ndarray, readout_motion: np.ndarray
                  ) -> None:  # fmt: skip
         height, width = depth.shape
-        fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
+        fx, fy, cx, cy = (float(intrinsics[0, 0]), float(intrinsics[1, 1]),
+                          float(intrinsics[0, 2]), float(intrinsics[1, 2]))  # fmt: skip
         rotations, shifts = row_motions(readout_motion, height)
-        v, u = np.mgrid[:height, :width].astype(np.float64)
-
-        ray_x, ray_y = (u - cx) / fx, (v - cy) / fy
-
-        def image_motion(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            x, y, z = ray_x * z, ray_y * z, z
-            moved = [x * rotations[:, i, 0:1] + y * rotations[:, i, 1:2]
-                     + z * rotations[:, i, 2:3] + shifts[:, i : i + 1]
-                     for i in range(3)]  # fmt: skip
-            return fx * moved[0] / moved[2] + cx - u, fy * moved[1] / moved[2] + cy - v
-
         valid = depth > 0
         z_guess = np.where(valid, depth, np.median(depth[valid]) if valid.any() else 1.0)
-        du, dv = image_motion(z_guess)
-        near_u = np.clip(np.rint(u - du), 0, width - 1).astype(np.intp)
-        near_v = np.clip(np.rint(v - dv), 0, height - 1).astype(np.intp)
-        du, dv = image_motion(z_guess[near_v, near_u])  # with the source's depth (fixed point)
-        self.map_u, self.map_v = u - du, v - dv  # where each rectified pixel's reading came from
+        self.map_u, self.map_v = np.empty((height, width)), np.empty((height, width))
+        source_maps(np.ascontiguousarray(z_guess), np.ascontiguousarray(rotations),
+                    np.ascontiguousarray(shifts), fx, fy, cx, cy,
+                    self.map_u, self.map_v)  # fmt: skip
         self.rotations, self.shifts, self.intrinsics = rotations, shifts, (fx, fy, cx, cy)
 
     def colour(self, rgb: np.ndarray) -> np.ndarray:
@@ -97,30 +88,8 @@ class _Sources:
                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)  # fmt: skip
 
     def depth(self, depth: np.ndarray) -> np.ndarray:
-        fx, fy, cx, cy = self.intrinsics
-        map_u, map_v = self.map_u, self.map_v
-        z_src = _sample_surface(depth, map_u, map_v)
-        src_row = np.clip(np.rint(map_v), 0, depth.shape[0] - 1).astype(np.intp)
-        third = self.rotations[src_row, 2]  # each source row's z axis
-        z_new = (((map_u - cx) / fx * z_src) * third[..., 0] + ((map_v - cy) / fy * z_src)
-                 * third[..., 1] + z_src * third[..., 2]) + self.shifts[src_row, 2]  # fmt: skip
-        return np.where((z_src > 0) & (z_new > 0), z_new, 0.0).astype(np.float32)
-
-
-def _sample_surface(depth: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Depth at sub-pixel positions: bilinear where the four readings around are valid and on
-    one surface (within `SURFACE_SPREAD` of each other), else the nearest reading, so that a
-    depth edge is never blended into a surface that is not there; 0 outside the image."""
-    height, width = depth.shape
-    inside = (u > -0.5) & (u < width - 0.5) & (v > -0.5) & (v < height - 0.5)
-    u0 = np.clip(np.floor(u), 0, width - 2).astype(np.intp)
-    v0 = np.clip(np.floor(v), 0, height - 2).astype(np.intp)
-    fu, fv = np.clip(u - u0, 0, 1), np.clip(v - v0, 0, 1)
-    corners = np.stack([depth[v0, u0], depth[v0, u0 + 1], depth[v0 + 1, u0],
-                        depth[v0 + 1, u0 + 1]]).astype(np.float64)  # fmt: skip
-    weights = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv])
-    low, high = corners.min(0), corners.max(0)
-    smooth = (low > 0) & (high - low <= SURFACE_SPREAD * low)
-    nearest = depth[np.clip(np.rint(v), 0, height - 1).astype(np.intp),
-                    np.clip(np.rint(u), 0, width - 1).astype(np.intp)]  # fmt: skip
-    return np.where(inside, np.where(smooth, (weights * corners).sum(0), nearest), 0.0)
+        out = np.empty(depth.shape, np.float32)
+        moved_depth(np.ascontiguousarray(depth), self.map_u, self.map_v,
+                    np.ascontiguousarray(self.rotations), np.ascontiguousarray(self.shifts),
+                    *self.intrinsics, SURFACE_SPREAD, out)  # fmt: skip
+        return out

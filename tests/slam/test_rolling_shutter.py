@@ -8,7 +8,14 @@ from conftest import rigid_pose
 from bgs_batch.config import Config, separate_readouts
 from bgs_batch.slam.depth_timing import interval_motion
 from bgs_batch.slam.frames import prepare_frame
-from bgs_batch.slam.rolling_shutter import rectify, rectify_colour, rectify_depth, row_motions
+from bgs_batch.slam.rolling_shutter import (
+    SURFACE_SPREAD,
+    _Sources,
+    rectify,
+    rectify_colour,
+    rectify_depth,
+    row_motions,
+)
 from bgs_batch.store import Frame
 from converters.synthetic import RoomRenderer, SynthConfig, camera_path
 
@@ -107,3 +114,62 @@ def test_a_rolling_colour_beside_a_global_depth_is_rectified_colour_only():
     alike = dataclasses.replace(cfg, depth_rolling_shutter_readout=0.03)
     shared, _ = prepare_frame(frame, k, alike, None, readout, None)
     assert not np.array_equal(shared.depth[..., 0].numpy(), frame.depth)  # both moved: wrong here
+
+
+def _numpy_source_maps(depth, k, motion):
+    """The rectification's source positions and moved depth, written with whole-image NumPy
+    arrays (the implementation before the kernels): the kernels must give the same bits."""
+    height, width = depth.shape
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+    rotations, shifts = row_motions(motion, height)
+    v, u = np.mgrid[:height, :width].astype(np.float64)
+    ray_x, ray_y = (u - cx) / fx, (v - cy) / fy
+
+    def image_motion(z):
+        x, y = ray_x * z, ray_y * z
+        moved = [x * rotations[:, i, 0:1] + y * rotations[:, i, 1:2] + z * rotations[:, i, 2:3]
+                 + shifts[:, i : i + 1] for i in range(3)]  # fmt: skip
+        return fx * moved[0] / moved[2] + cx - u, fy * moved[1] / moved[2] + cy - v
+
+    valid = depth > 0
+    z_guess = np.where(valid, depth, np.median(depth[valid]))
+    du, dv = image_motion(z_guess)
+    near_u = np.clip(np.rint(u - du), 0, width - 1).astype(np.intp)
+    near_v = np.clip(np.rint(v - dv), 0, height - 1).astype(np.intp)
+    du, dv = image_motion(z_guess[near_v, near_u])
+    map_u, map_v = u - du, v - dv
+    inside = (map_u > -0.5) & (map_u < width - 0.5) & (map_v > -0.5) & (map_v < height - 0.5)
+    u0 = np.clip(np.floor(map_u), 0, width - 2).astype(np.intp)
+    v0 = np.clip(np.floor(map_v), 0, height - 2).astype(np.intp)
+    fu, fv = np.clip(map_u - u0, 0, 1), np.clip(map_v - v0, 0, 1)
+    corners = np.stack([depth[v0, u0], depth[v0, u0 + 1], depth[v0 + 1, u0],
+                        depth[v0 + 1, u0 + 1]]).astype(np.float64)  # fmt: skip
+    weights = np.stack([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv])
+    low, high = corners.min(0), corners.max(0)
+    smooth = (low > 0) & (high - low <= SURFACE_SPREAD * low)
+    nearest = depth[np.clip(np.rint(map_v), 0, height - 1).astype(np.intp),
+                    np.clip(np.rint(map_u), 0, width - 1).astype(np.intp)]  # fmt: skip
+    z_src = np.where(inside, np.where(smooth, (weights * corners).sum(0), nearest), 0.0)
+    src_row = np.clip(np.rint(map_v), 0, height - 1).astype(np.intp)
+    third = rotations[src_row, 2]
+    z_new = (((map_u - cx) / fx * z_src) * third[..., 0] + ((map_v - cy) / fy * z_src)
+             * third[..., 1] + z_src * third[..., 2]) + shifts[src_row, 2]  # fmt: skip
+    return map_u, map_v, np.where((z_src > 0) & (z_new > 0), z_new, 0.0).astype(np.float32)
+
+
+def test_the_kernels_give_the_numpy_rectification_bit_for_bit():
+    """Depth with steps (surfaces apart), holes and readings at the border, under a turn and a
+    shift large enough to move rows past the image's edges."""
+    rng = np.random.default_rng(7)
+    depth = np.repeat(rng.uniform(0.4, 4.0, (6, 8)), 8, 0).repeat(8, 1).astype(np.float32)
+    depth += rng.normal(0, 0.01, depth.shape).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.1] = 0
+    k = np.array([[55.0, 0, 31.7], [0, 54.0, 23.2], [0, 0, 1]])
+    for rotation_deg, shift in (([2.0, -3.0, 1.0], [0.02, -0.01, 0.03]),
+                                ([-0.3, 0.1, 4.0], [0.0, 0.0, -0.05])):  # fmt: skip
+        motion = rigid_pose(rotation_deg, shift)
+        map_u, map_v, moved = _numpy_source_maps(depth, k, motion)
+        sources = _Sources(depth, k, motion)
+        assert np.array_equal(sources.map_u, map_u) and np.array_equal(sources.map_v, map_v)
+        assert np.array_equal(sources.depth(depth), moved)
+        assert 0.5 < np.mean(moved > 0) < 0.95  # holes, and rows moved out of the image
