@@ -493,6 +493,13 @@ class ColourOffsetConfig:
     min_width: int = setting(
         256, COUNT, "register and compare the frames at the largest downscale leaving this many "
         "pixels across")
+    # a colour camera further off than a mounting error is a wrong calibration, not an offset;
+    # a fit beyond it has run to views that hide most samples (TUM's frames: focal ratio 1.98)
+    max_rotation_deg: float = setting(
+        5.0, Range(0, 10, low_open=True), "a fitted rotation beyond this about any axis is no "
+        "offset (°): no estimate")
+    max_focal_change: float = setting(
+        0.2, Range(0, 0.5, low_open=True), "... nor a focal ratio further than this from 1")
     # the estimate is kept only where the pairs agree and it stands out of their spread: on
     # registered synthetic rooms the pairs agree to 0.1° and the estimate is below it; on real
     # registered Kinect frames the pairs disagree by degrees (docs/experiments.md)

@@ -16,10 +16,12 @@ differently for every motion. So (docs/method.md §6):
 3. **Fit.** The colour camera's rotation (a rotation vector) and focal ratio that make the pairs'
    colours agree best, by Nelder-Mead on the Huber cost of their intensity differences, over all
    pairs and over each pair alone; the spread of the pairs' own fits gives standard errors.
-4. **Gate.** The estimate is kept where the pairs agree (standard errors below
-   ``max_standard_error_deg`` and ``max_focal_standard_error``) and it stands out of their spread
-   (above ``significance`` standard errors and ``min_rotation_deg`` / ``min_focal_change``);
-   otherwise the colour images stay as they are.
+4. **Gate.** A fit beyond ``max_rotation_deg`` or ``max_focal_change`` is no mounting offset
+   (the fit ran to views that hide most samples) and no estimate. The estimate is kept where
+   the pairs agree (standard errors below ``max_standard_error_deg`` and
+   ``max_focal_standard_error``) and it stands out of their spread (above ``significance``
+   standard errors and ``min_rotation_deg`` / ``min_focal_change``); otherwise the colour
+   images stay as they are.
 
 The shift between the two sensors (millimetres) is not modelled: at the distances of a room it
 moves a pixel or two, where a degree of rotation moves ten.
@@ -114,6 +116,11 @@ def estimate_colour_offset(read: Callable[[int], Frame], timestamps: np.ndarray,
                f"first {n} frames")  # fmt: skip
     found = ColourOffsetEstimate(tuple(float(a) for a in rotation), focal, rotation_error,
                                  focal_error, n, pairs, "")  # fmt: skip
+    if np.abs(rotation).max() > est.max_rotation_deg or abs(focal - 1) > est.max_focal_change:
+        return dataclasses.replace(found, rotation_deg=None, focal_ratio=None, reason=(
+            f"colour camera offset not determined: the best fit is no mounting offset (beyond "
+            f"±{est.max_rotation_deg:g}° or ±{100 * est.max_focal_change:g} % focal length: "
+            f"{summary}); the colour images are used as they are"))  # fmt: skip
     if rotation_error > est.max_standard_error_deg or focal_error > est.max_focal_standard_error:
         return dataclasses.replace(found, rotation_deg=None, focal_ratio=None, reason=(
             f"colour camera offset not determined: the frame pairs disagree ({summary}); the "

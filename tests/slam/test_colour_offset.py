@@ -42,9 +42,9 @@ def rooms(tmp_path_factory):
     return stores
 
 
-def estimate(store_path):
+def estimate(store_path, settings=()):
     with FrameStore(store_path) as store:
-        cfg, _ = for_store(load_config("cpu"), store)
+        cfg, _ = for_store(load_config("cpu", list(settings)), store)
         return estimate_colour_offset(store.__getitem__, store.timestamps, store.intrinsics, cfg)
 
 
@@ -75,6 +75,14 @@ def test_the_offset_is_recovered_and_a_registered_camera_left_alone(rooms):
     registered = estimate(rooms["reg"])  # found at ~0.1°, within the pairs' spread, or not found
     assert registered.rotation_deg is None and registered.focal_ratio is None
     assert "used as they are" in registered.reason or "sits on" in registered.reason
+
+
+@pytest.mark.slow
+def test_a_fit_beyond_a_mounting_offset_is_no_estimate(rooms):
+    """With the plausible offsets narrowed to ±0.5°, the misregistered room's 1.5° turn is
+    refused by name, and the images stay as they are."""
+    found = estimate(rooms["misreg"], ["colour_offset.max_rotation_deg=0.5"])
+    assert found.rotation_deg is None and "no mounting offset (beyond ±0.5°" in found.reason
 
 
 def test_too_few_frames_give_no_estimate(rooms):
