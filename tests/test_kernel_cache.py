@@ -21,12 +21,13 @@ import bgs_batch.render._numba_project
 import bgs_batch.render._numba_raster
 import bgs_batch.slam.blur
 import bgs_batch.slam.loss_kernels
+import bgs_batch.slam.rolling_shutter_kernels
 import bgs_batch.slam.tracking.pose_jacobian
 import bgs_batch.slam.tracking.registration_kernels
 
 KERNEL_MODULES = (bgs_batch.render._numba_raster, bgs_batch.render._numba_project,
                   bgs_batch.slam.blur, bgs_batch.slam.loss_kernels,
-                  bgs_batch.slam.tracking.pose_jacobian,
+                  bgs_batch.slam.rolling_shutter_kernels, bgs_batch.slam.tracking.pose_jacobian,
                   bgs_batch.slam.tracking.registration_kernels)  # fmt: skip
 VALUE_CHANGING = {"fast", "contract", "arcp", "reassoc", "afn"}
 
