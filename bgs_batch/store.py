@@ -372,6 +372,8 @@ def validate(f: h5py.File, path: Path | str) -> None:
         if not (math.isnan(readout) or 0 <= readout < MAX_READOUT_S):
             problems.append(f"{key} {readout} must be >= 0 and below {MAX_READOUT_S} s, or NaN "
                             "(unknown)")  # fmt: skip
+    if not isinstance(f.attrs.get("depth_registered", False), bool | np.bool_):
+        problems.append(f"depth_registered {f.attrs['depth_registered']!r} must be true or false")
     if len(np.atleast_1d(f.attrs["distortion"])) != 5:
         problems.append("distortion must hold 5 coefficients (k1 k2 p1 p2 k3)")
     if "pose_gt" in f:

@@ -124,8 +124,8 @@ def print_summary(summary: StoreSummary, console: Console | None = None) -> None
            if not same_readout(s.depth_rolling_shutter_readout, s.rolling_shutter_readout)
            else {}),  # fmt: skip
         "depth registered": ("to colour, with the cameras' calibration" if s.depth_registered
-                             else "not known: `bgs run` estimates the colour camera's offset "
-                             "from the frames"),  # fmt: skip
+                             else "not known: the `cpu` preset estimates the colour camera's "
+                             "offset from the frames"),  # fmt: skip
         "created by": s.created_by,
     }
     rows |= {f"  {key}": str(value) for key, value in sorted(s.provenance.items())}

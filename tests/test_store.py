@@ -159,6 +159,7 @@ def test_existing_output_refused_unless_overwrite(tmp_path):
         (lambda f: f.create_dataset("depth_timestamp", data=[1.0, 2.0]), "float64 \\[3\\]"),
         (lambda f: f.attrs.__setitem__("rolling_shutter_readout", -0.01), "rolling_shutter"),
         (lambda f: f.attrs.__setitem__("rolling_shutter_readout", np.inf), "rolling_shutter"),
+        (lambda f: f.attrs.__setitem__("depth_registered", "no"), "depth_registered 'no'"),
     ],
 )
 def test_validation_names_the_problem(tmp_path, damage, message):
