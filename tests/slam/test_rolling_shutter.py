@@ -16,6 +16,7 @@ from bgs_batch.slam.rolling_shutter import (
     rectify_depth,
     row_motions,
 )
+from bgs_batch.slam.rolling_shutter_kernels import SOURCE_STEPS
 from bgs_batch.store import Frame
 from converters.synthetic import RoomRenderer, SynthConfig, camera_path
 
@@ -118,26 +119,27 @@ def test_a_rolling_colour_beside_a_global_depth_is_rectified_colour_only():
 
 def _numpy_source_maps(depth, k, motion):
     """The rectification's source positions and moved depth, written with whole-image NumPy
-    arrays (the implementation before the kernels): the kernels must give the same bits."""
+    arrays: the kernels must give the same bits."""
     height, width = depth.shape
     fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
     rotations, shifts = row_motions(motion, height)
     v, u = np.mgrid[:height, :width].astype(np.float64)
     ray_x, ray_y = (u - cx) / fx, (v - cy) / fy
 
-    def image_motion(z):
-        x, y = ray_x * z, ray_y * z
-        moved = [x * rotations[:, i, 0:1] + y * rotations[:, i, 1:2] + z * rotations[:, i, 2:3]
-                 + shifts[:, i : i + 1] for i in range(3)]  # fmt: skip
-        return fx * moved[0] / moved[2] + cx - u, fy * moved[1] / moved[2] + cy - v
+    def source(z, rows):  # the row's motion inverted, Rᵀ(p − t), and projected
+        rotation, shift = rotations[rows], shifts[rows]
+        x, y, w = ray_x * z - shift[..., 0], ray_y * z - shift[..., 1], z - shift[..., 2]
+        moved = [rotation[..., 0, i] * x + rotation[..., 1, i] * y + rotation[..., 2, i] * w
+                 for i in range(3)]  # fmt: skip
+        return fx * moved[0] / moved[2] + cx, fy * moved[1] / moved[2] + cy
 
     valid = depth > 0
     z_guess = np.where(valid, depth, np.median(depth[valid]))
-    du, dv = image_motion(z_guess)
-    near_u = np.clip(np.rint(u - du), 0, width - 1).astype(np.intp)
-    near_v = np.clip(np.rint(v - dv), 0, height - 1).astype(np.intp)
-    du, dv = image_motion(z_guess[near_v, near_u])
-    map_u, map_v = u - du, v - dv
+    z, rows = z_guess, v.astype(np.intp)
+    for _ in range(SOURCE_STEPS):
+        map_u, map_v = source(z, rows)
+        rows = np.clip(np.rint(map_v), 0, height - 1).astype(np.intp)
+        z = z_guess[rows, np.clip(np.rint(map_u), 0, width - 1).astype(np.intp)]
     inside = (map_u > -0.5) & (map_u < width - 0.5) & (map_v > -0.5) & (map_v < height - 0.5)
     u0 = np.clip(np.floor(map_u), 0, width - 2).astype(np.intp)
     v0 = np.clip(np.floor(map_v), 0, height - 2).astype(np.intp)
