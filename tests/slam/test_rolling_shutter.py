@@ -44,14 +44,15 @@ def test_no_motion_leaves_the_frame_as_it_is():
     assert np.allclose(out_depth, depth, atol=1e-6) and np.array_equal(out_depth == 0, depth == 0)
 
 
-def rolling_and_global():
-    """A room rendered row by row while the camera turns 2.4° and moves 1 cm over the readout,
-    and at the readout's middle by one pose: (readout motion, K, rolling (colour, z, valid),
-    global (colour, z, valid))."""
+def rolling_and_global(readout=None):
+    """A room rendered row by row while the camera moves by `readout` over the readout (by
+    default: turns 2.4° and moves 1 cm), and at the readout's middle by one pose: (readout
+    motion, K, rolling (colour, z, valid), global (colour, z, valid))."""
+    if readout is None:
+        readout = rigid_pose([1.2, -2.0, 0.6], [0.008, -0.002, 0.005])
     config = SynthConfig(width=160, height=120, frames=10, seed=3)
     renderer = RoomRenderer(config)
     middle = camera_path(config)(np.array([4.0]))[0]
-    readout = rigid_pose([1.2, -2.0, 0.6], [0.008, -0.002, 0.005])
     rotations, shifts = row_motions(readout, config.height)
     rows = np.tile(np.eye(4), (config.height, 1, 1))
     rows[:, :3, :3], rows[:, :3, 3] = rotations, shifts
@@ -81,6 +82,23 @@ def test_a_rolling_shutter_render_rectified_matches_the_global_shutter_render():
     colour_error = np.abs(rgb.astype(np.float64) - rgb_gs)[inner].mean()
     colour_raw = np.abs(rgb_rs.astype(np.float64) - rgb_gs)[inner].mean()
     assert colour_error < 0.35 * colour_raw
+
+
+def test_a_fast_pitch_is_rectified_at_its_own_readout_not_a_stretched_one():
+    """A pitch of ±4.5° over the readout shears the 120 rows by ±10 pixels, so each source lies
+    rows away from the rectified pixel: taken from the rectified pixel's own row, the image
+    comes out stretched or squeezed, and a readout 5 % off the true one matched better."""
+    for pitch in (4.5, -4.5):
+        readout, k, (_, z_rs, valid_rs), (_, z_gs, valid_gs) = rolling_and_global(
+            rigid_pose([pitch, 0.0, 0.0], [0.0, 0.0, 0.0]))
+        depth = np.where(valid_rs, z_rs, 0).astype(np.float32)
+        errors = []
+        for scale in (0.95, 1.0, 1.05):
+            _, rectified = rectify(np.zeros((*depth.shape, 3), np.uint8), depth, k,
+                                   interval_motion(np.eye(4), readout, scale))  # fmt: skip
+            both = (rectified > 0) & valid_gs
+            errors.append(np.mean(np.abs(rectified[both] - z_gs[both])))
+        assert errors[1] < 0.8 * min(errors[0], errors[2]), (pitch, errors)
 
 
 def test_the_two_images_apart_equal_them_together_bit_for_bit():
