@@ -9,14 +9,10 @@ docs/experiments.md). Each row is instead moved to the frame's time stamp (the m
 readout) by the camera's constant-velocity motion over the row's offset, as Kerl et al. (ICCV
 2015) model rolling-shutter RGB-D cameras with a continuous trajectory.
 
-Each rectified pixel samples the raw image where the row that read it saw its point: that row's
-motion inverted and projected, with the depth read near the source (rotation dominates hand-held
-motion within a frame, and a rotation's image motion does not depend on depth). Which row read it
-depends on where the source is, so the source is found by fixed-point steps over the row
-(`rolling_shutter_kernels.SOURCE_STEPS`): taking the rectified pixel's own row instead leaves the
-image stretched or squeezed by a/H for a shear of a pixels over H rows, 7 % when a fast pitch
-shears a 240-row image by 17 pixels. Depth readings also take the motion's change of their
-distance.
+Rotation dominates hand-held motion within a frame, and a rotation's image motion does not depend
+on depth, so the rectified image samples the raw one at the pixel minus the motion computed at
+the rectified pixel itself (one fixed-point step); depth readings also take the motion's change
+of their distance.
 """
 
 from __future__ import annotations

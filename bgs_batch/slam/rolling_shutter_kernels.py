@@ -1,10 +1,10 @@
 """Numba kernels of the rolling-shutter rectification (`rolling_shutter`): where each rectified
 pixel's reading comes from, and the depth sampled there moved to the middle of the readout.
 
-A NumPy version builds a dozen full-frame float64 temporaries per frame (31 ms at 640×480, a
-third of a global-stage visit). These loops do the same operations per pixel in the same order,
-so the rectified images are bit for bit the NumPy version's (the tests keep it as an oracle), on
-any number of threads: every pixel is computed on its own.
+The NumPy version built a dozen full-frame float64 temporaries per frame (31 ms at 640×480,
+a third of a global-stage visit). These loops do the same operations per pixel in the same
+order, so the rectified images are bit for bit the NumPy version's (tested), on any number of
+threads: every pixel is computed on its own.
 """
 
 from __future__ import annotations
@@ -12,25 +12,16 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-# Fixed-point steps on the row that read a rectified pixel's source. With an image motion of a
-# pixels over the readout of H rows, a row off by δ moves the source by δ·a/H pixels: the first
-# step (the rectified pixel's own row) is off by up to a/2 rows, and each step shrinks that by
-# a/H (a few %), so three leave the nearest row's rounding, ≤ a/2H pixels (0.04 at a = 20).
-SOURCE_STEPS = 3
-
 
 @numba.njit(cache=True, inline="always")
-def _source(u, v, z, rotation, shift, fx, fy, cx, cy):
-    """Where the raw image saw the point at rectified pixel (u, v) and depth z, when the row that
-    read it has `rotation` (3, 3) and `shift` (3,) to the middle of the readout: that motion
-    inverted, ``Rᵀ(p − t)``, and projected."""
-    x = (u - cx) / fx * z - shift[0]
-    y = (v - cy) / fy * z - shift[1]
-    w = z - shift[2]
-    mx = rotation[0, 0] * x + rotation[1, 0] * y + rotation[2, 0] * w
-    my = rotation[0, 1] * x + rotation[1, 1] * y + rotation[2, 1] * w
-    mz = rotation[0, 2] * x + rotation[1, 2] * y + rotation[2, 2] * w
-    return fx * mx / mz + cx, fy * my / mz + cy
+def _image_motion(u, v, z, rotation, shift, fx, fy, cx, cy):
+    """The pixel motion (du, dv) of the point at pixel (u, v) and depth z, read with the row's
+    `rotation` (3, 3) and `shift` (3,) to the middle of the readout."""
+    x, y = (u - cx) / fx * z, (v - cy) / fy * z
+    mx = x * rotation[0, 0] + y * rotation[0, 1] + z * rotation[0, 2] + shift[0]
+    my = x * rotation[1, 0] + y * rotation[1, 1] + z * rotation[1, 2] + shift[1]
+    mz = x * rotation[2, 0] + y * rotation[2, 1] + z * rotation[2, 2] + shift[2]
+    return fx * mx / mz + cx - u, fy * my / mz + cy - v
 
 
 @numba.njit(cache=True, inline="always")
@@ -42,29 +33,22 @@ def _clip_index(value, upper):
 def source_maps(z_guess, rotations, shifts, fx, fy, cx, cy, map_u, map_v):
     """Fill `map_u`, `map_v` [H,W] float64: where each rectified pixel's reading came from.
 
-    The source depends on the row that read it, which depends on the source: the first step
-    takes the rectified pixel's own row and depth guess, each further step (`SOURCE_STEPS`) the
-    row and depth guess at the source the step before found. `z_guess` [H,W] is the depth with
-    the median reading where it is invalid."""
+    The motion is computed at the rectified pixel with its own depth guess, then once more with
+    the depth guess at the source pixel that gives (one fixed-point step); `z_guess` [H,W] is
+    the depth with the median reading where it is invalid."""
     height, width = z_guess.shape
     for row in numba.prange(height):
+        v = float(row)
         for col in range(width):
-            map_u[row, col], map_v[row, col] = _fixed_point_source(
-                row, col, z_guess, rotations, shifts, fx, fy, cx, cy)
-
-
-@numba.njit(cache=True)
-def _fixed_point_source(row, col, z_guess, rotations, shifts, fx, fy, cx, cy):
-    """`source_maps` for one rectified pixel."""
-    height, width = z_guess.shape
-    u, v = float(col), float(row)
-    src_u, src_v = u, v
-    src_row, z = np.int64(row), float(z_guess[row, col])
-    for _ in range(SOURCE_STEPS):
-        src_u, src_v = _source(u, v, z, rotations[src_row], shifts[src_row], fx, fy, cx, cy)
-        src_row = np.int64(_clip_index(src_v, height - 1))
-        z = float(z_guess[src_row, _clip_index(src_u, width - 1)])
-    return src_u, src_v
+            u = float(col)
+            du, dv = _image_motion(u, v, float(z_guess[row, col]), rotations[row], shifts[row],
+                                   fx, fy, cx, cy)  # fmt: skip
+            near_u = _clip_index(u - du, width - 1)
+            near_v = _clip_index(v - dv, height - 1)
+            du, dv = _image_motion(u, v, float(z_guess[near_v, near_u]), rotations[row],
+                                   shifts[row], fx, fy, cx, cy)  # fmt: skip
+            map_u[row, col] = u - du
+            map_v[row, col] = v - dv
 
 
 @numba.njit(parallel=True, cache=True)
