@@ -553,6 +553,11 @@ class Config:
     depth_rolling_shutter_readout: float | None = setting(
         None, Range(0, 1), "the depth image's readout, when it differs from colour's (None: the "
         "store's, or rolling_shutter_readout's when set)")
+    # A rolling-shutter frame is first rectified with the last frame interval's velocity (it is
+    # not tracked yet); once tracked, its own interval gives a closer one: rectify it again with
+    # that and track it again from its pose (docs/experiments.md, "Tracking")
+    rectify_again: bool = setting(
+        False, "rectify a rolling-shutter frame again once tracked, and track it again")
     checkpoint_every: int = setting(
         10, COUNT, "frames between job checkpoints (and on SIGTERM/SIGUSR1/SIGINT)")
     uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
@@ -639,6 +644,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         # rows read at their own instants moved to the frame's: a Kinect-class camera turning
         # at fr1/rpy's speed otherwise shows a pose biased along the turn (docs/experiments.md)
         "rolling_shutter_readout": None,
+        "rectify_again": True,
         "seeding.new_submap_points": 30_000,
         "seeding.new_submap_gradient_points": 15_000,
         "seeding.new_frame_points": 10_000,

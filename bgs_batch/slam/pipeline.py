@@ -103,6 +103,12 @@ class Slam:
         c2w, score_c, score_d = self._track(full, sensor_c, sensor_d, event)
         self.poses.append(c2w)
         self.timestamps.append(frame.timestamp)
+        if self._rectifies_again(readouts):
+            again = self.motion.next_readout_motions(self.poses, self.timestamps)
+            readouts, (full, level) = again, self.prepare(frame, motion, again)
+            log_motions(event, "", {"depth_motion": motion}, readouts)
+            c2w, score_c, score_d = self._track(full, sensor_c, sensor_d, event, start=c2w)
+            self.poses[-1] = c2w
         if self.unrectified_first is not None and len(self.poses) == 2:
             readouts = self._rectify_first_keyframe(event)
             full, level = self.prepare(frame, motion, readouts)
@@ -139,13 +145,23 @@ class Slam:
             self.mapper.map(self.gmap, self.active_keyframes, True, self.rng)
         return readouts
 
+    def _rectifies_again(self, readouts: ReadoutMotions) -> bool:
+        """Whether the frame just tracked is rectified again with the interval ending at it
+        (`rectify_again`): a rolling-shutter frame with a velocity, other than the second
+        frame, whose velocity the first keyframe's rectification takes."""
+        return (self.cfg.rectify_again and readouts[0] is not None and len(self.poses) >= 3
+                and self.unrectified_first is None)  # fmt: skip
+
     def _track(self, full: Level, sensor_c: torch.Tensor, sensor_d: torch.Tensor,
-               event: dict[str, Any]) -> tuple[np.ndarray, float | None, float | None]:  # fmt: skip
-        """The frame's camera-to-world pose and its two surprise scores (none for frame 0)."""
+               event: dict[str, Any], start: np.ndarray | None = None
+               ) -> tuple[np.ndarray, float | None, float | None]:  # fmt: skip
+        """The frame's camera-to-world pose and its two surprise scores (none for frame 0),
+        tracked from `start` (default: the constant-velocity prediction)."""
         if not self.poses:
             return np.eye(4), None, None  # the first camera defines the world frame
         with self.timings.measure("tracking"):
-            init = self.motion.initial_pose(self.poses)
+            init = (self.motion.initial_pose(self.poses) if start is None
+                    else torch.from_numpy(start))  # fmt: skip
             result = self.tracker.track(self.gmap, full, sensor_c, sensor_d,
                                         torch.linalg.inv(init))  # fmt: skip
             # C order always: LAPACK returns column-major, and a checkpoint restores row-major;

@@ -287,6 +287,44 @@ def test_a_run_stopped_after_its_first_frame_rectifies_it_when_resumed(rolling_s
     assert 0 in resumed.motion.readout_motions and resumed.unrectified_first is None
 
 
+def test_a_tracked_frame_is_rectified_again_with_the_interval_ending_at_it(rolling_store,
+                                                                          tmp_path):  # fmt: skip
+    """`rectify_again` (the cpu preset's): a frame is first rectified with the last interval's
+    velocity; once tracked, the interval ending at its tracked pose gives the motion it is
+    tracked again from that pose, kept, logged and exported with."""
+    from bgs_batch.slam import Slam
+    from bgs_batch.slam.depth_timing import interval_motion
+    from bgs_batch.slam.run_record import logged_rows
+
+    cfg = load_config("cpu", ["rolling_shutter_readout=0.03", "tracking.iterations=4",
+                              "mapping.iterations=4", "mapping.new_submap_iterations=4"])
+    assert cfg.rectify_again
+    store = FrameStore(rolling_store)
+    slam = Slam(cfg, store.intrinsics, tmp_path)
+    starts, track = [], slam._track
+
+    def spy(*args, **kwargs):
+        tracked = track(*args, **kwargs)
+        starts.append((kwargs.get("start"), tracked[0]))
+        return tracked
+
+    slam._track = spy
+    for k in range(5):
+        before = [p.copy() for p in slam.poses]
+        starts.clear()
+        event = slam.process(store[k])
+        if k < 2:  # no velocity yet, then the first keyframe's (one tracking each)
+            assert [start for start, _ in starts] == [None]
+            continue
+        (first, once), (again, final) = starts
+        assert first is None and again is once  # tracked again from where it was tracked
+        expected = interval_motion(before[-1], once, 0.03 / (slam.timestamps[-1]
+                                                             - slam.timestamps[-2]))  # fmt: skip
+        assert event["readout_motion"] == logged_rows(expected)
+        assert np.array_equal(slam.motion.of_frame(k)[1][0], expected)
+        assert event["pose"] == logged_rows(final) and np.array_equal(slam.poses[-1], final)
+
+
 def test_a_checkpoint_of_an_older_version_is_refused_by_name(tmp_path):
     from bgs_batch.errors import InputError
     from bgs_batch.slam import Slam
