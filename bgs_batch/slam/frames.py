@@ -49,12 +49,10 @@ def prepare_frame(frame: Frame, intrinsics: np.ndarray, cfg: Config,
     if colour_offset_set(cfg):  # onto the depth camera first: rectification reads its depth
         rgb = register_colour(rgb, intrinsics, cfg.colour_offset)
     if separate_readouts(cfg):
-        raw_depth = depth
-        if depth_readout_motion is not None:
-            depth = rectify_depth(raw_depth, intrinsics, depth_readout_motion)
         if readout_motion is not None:
-            rgb, read = rectify_colour(rgb, raw_depth, intrinsics, readout_motion)
-            depth = np.where(read, depth, 0.0).astype(np.float32)  # no colour: no pixel
+            rgb = rectify_colour(rgb, depth, intrinsics, readout_motion)
+        if depth_readout_motion is not None:
+            depth = rectify_depth(depth, intrinsics, depth_readout_motion)
     elif readout_motion is not None:
         rgb, depth = rectify(rgb, depth, intrinsics, readout_motion)
     rgb, depth = crop_and_clip(rgb, depth, crop, cfg.max_depth)

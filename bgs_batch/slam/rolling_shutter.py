@@ -52,13 +52,11 @@ def rectify(rgb: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
 
 
 def rectify_colour(rgb: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray,
-                   readout_motion: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                   readout_motion: np.ndarray) -> np.ndarray:  # fmt: skip
     """The colour image alone moved to the middle of its readout (a camera whose colour and
-    depth sensors read out differently, e.g. a RealSense D435's rolling colour and global depth),
-    and where its pixels have a source (False: black, nothing was read there); `depth` only
-    guesses each pixel's distance, which the motion's translation needs."""
-    sources = _Sources(depth, intrinsics, readout_motion)
-    return sources.colour(rgb), sources.inside()
+    depth sensors read out differently, e.g. a RealSense D435's rolling colour and global depth);
+    `depth` only guesses each pixel's distance, which the motion's translation needs."""
+    return _Sources(depth, intrinsics, readout_motion).colour(rgb)
 
 
 def rectify_depth(depth: np.ndarray, intrinsics: np.ndarray, readout_motion: np.ndarray
@@ -84,12 +82,6 @@ class _Sources:
                     np.ascontiguousarray(shifts), fx, fy, cx, cy,
                     self.map_u, self.map_v)  # fmt: skip
         self.rotations, self.shifts, self.intrinsics = rotations, shifts, (fx, fy, cx, cy)
-
-    def inside(self) -> np.ndarray:
-        """Where the source lies in the raw image, as `sample_surface` reads depth there."""
-        height, width = self.map_u.shape
-        return ((self.map_u > -0.5) & (self.map_u < width - 0.5)
-                & (self.map_v > -0.5) & (self.map_v < height - 0.5))  # fmt: skip
 
     def colour(self, rgb: np.ndarray) -> np.ndarray:
         return cv2.remap(rgb, self.map_u.astype(np.float32), self.map_v.astype(np.float32),
