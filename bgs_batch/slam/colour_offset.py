@@ -140,18 +140,22 @@ def _none(frames: int, pairs: list[tuple[int, int]], reason: str) -> ColourOffse
 def _rectified_views(read: Callable[[int], Frame], timestamps: np.ndarray,
                      intrinsics: np.ndarray, cfg: Config, n: int) -> list[View]:  # fmt: skip
     """The first n frames as registration views at the estimator's resolution, their rows moved
-    to one instant at the run's readout by the velocities of a first, unrectified chain."""
-    level = FrameViews(read, intrinsics, dataclasses.replace(cfg, rolling_shutter_readout=None),
-                       cfg.colour_offset.min_width)  # fmt: skip
-    readout = cfg.rolling_shutter_readout or 0.0
-    if not readout:
+    to one instant at the run's readouts (colour and depth, each its own) by the velocities of a
+    first, unrectified chain: a depth image left as read beside a rectified colour image would
+    look like a colour camera turned away from the depth camera."""
+    level = FrameViews(read, intrinsics, cfg, cfg.colour_offset.min_width)
+    readouts = (cfg.rolling_shutter_readout or 0.0, cfg.depth_rolling_shutter_readout or 0.0)
+    if not any(readouts):
         return [level.view(read(i)) for i in range(n)]
     poses = chain_poses(level, n, cfg, photometric=False)
 
-    def motion(i: int) -> np.ndarray | None:
-        return readout_motion_at(poses, timestamps, i, readout) if 0 < i < n - 1 else None
+    def motions(i: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+        if not 0 < i < n - 1:
+            return None, None
+        colour, depth = (readout_motion_at(poses, timestamps, i, r) for r in readouts)
+        return colour, depth
 
-    return [level.view(read(i), motion(i)) for i in range(n)]
+    return [level.view(read(i), *motions(i)) for i in range(n)]
 
 
 class _PairCost:

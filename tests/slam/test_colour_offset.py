@@ -11,6 +11,7 @@ from types import SimpleNamespace
 import h5py
 import numpy as np
 import pytest
+import torch
 
 from bgs_batch.config import ColourOffsetConfig, for_store, load_config, needs_colour_offset
 from bgs_batch.slam.colour_offset import estimate_colour_offset
@@ -145,3 +146,27 @@ def test_a_registered_store_turns_the_estimate_off_unless_the_offset_is_set_by_h
     hand = load_config("cpu", ["colour_offset.rotation_x_deg=0.5"])
     cfg, sources = for_store(hand, store)  # the hand-set offset stays applied
     assert cfg.colour_offset == hand.colour_offset and "colour_offset.estimate" not in sources
+
+
+def test_the_estimator_moves_each_image_by_its_own_readout(tmp_path):
+    """Its views are rectified as the run rectifies frames: a depth image read out with the
+    colour one moves with it (left as read, the two would disagree like a turned colour camera),
+    a global-shutter depth image stays as read."""
+    from bgs_batch.slam.colour_offset import _rectified_views
+    from bgs_batch.slam.readout import FrameViews
+
+    config = motion_config("shake", ("rolling_shutter",), frames=6, width=160, height=120,
+                           seed=7)  # fmt: skip
+    store_path = convert_tum(synthesize(tmp_path / "seq", config), tmp_path / "seq.h5",
+                             TumOptions())  # fmt: skip
+    with FrameStore(store_path) as store:
+        both, _ = for_store(load_config("cpu"), store)
+        assert both.rolling_shutter_readout == both.depth_rolling_shutter_readout > 0
+        mixed = dataclasses.replace(both, depth_rolling_shutter_readout=0.0)
+        raw = FrameViews(store.__getitem__, store.intrinsics, both,
+                         both.colour_offset.min_width).view(store[2])  # fmt: skip
+        for cfg, depth_moves in ((both, True), (mixed, False)):
+            view = _rectified_views(store.__getitem__, store.timestamps, store.intrinsics, cfg,
+                                    len(store))[2]  # fmt: skip
+            assert not torch.equal(view.gray, raw.gray)
+            assert torch.equal(view.depth, raw.depth) is not depth_moves
