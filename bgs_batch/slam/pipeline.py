@@ -167,10 +167,12 @@ class Slam:
             # C order always: LAPACK returns column-major, and a checkpoint restores row-major;
             # the layout changes BLAS's summation order, so resuming would drift by an ulp
             c2w = np.ascontiguousarray(torch.linalg.inv(result.w2c).numpy())
-            event.update(track_loss=result.loss, track_iterations=result.iterations,
-                         track_doubled=result.doubled)  # fmt: skip
+            # a second tracking (`rectify_again`) keeps the first's record beside its own
+            key = "track_" if start is None else "retrack_"
+            event.update({key + "loss": result.loss, key + "iterations": result.iterations,
+                          key + "doubled": result.doubled})  # fmt: skip
             if result.start is not None:
-                event["track_start"] = result.start
+                event[key + "start"] = result.start
         return c2w, result.score_color, result.score_depth
 
     def _switch_submap(self, index: int, event: dict[str, Any]) -> np.ndarray:

@@ -317,6 +317,8 @@ def test_a_tracked_frame_is_rectified_again_with_the_interval_ending_at_it(rolli
             assert [start for start, _ in starts] == [None]
             continue
         (first, once), (again, final) = starts
+        assert {"track_start", "retrack_start", "track_iterations", "retrack_iterations"} <= set(
+            event)  # each tracking's record
         assert first is None and again is once  # tracked again from where it was tracked
         expected = interval_motion(before[-1], once, 0.03 / (slam.timestamps[-1]
                                                              - slam.timestamps[-2]))  # fmt: skip
