@@ -152,8 +152,8 @@ def _rectified_views(read: Callable[[int], Frame], timestamps: np.ndarray,
     def motions(i: int) -> tuple[np.ndarray | None, np.ndarray | None]:
         if not 0 < i < n - 1:
             return None, None
-        colour, depth = (readout_motion_at(poses, timestamps, i, r) for r in readouts)
-        return colour, depth
+        return readout_motion_at(poses, timestamps, i, readouts[0]), readout_motion_at(
+            poses, timestamps, i, readouts[1])
 
     return [level.view(read(i), *motions(i)) for i in range(n)]
 
