@@ -152,8 +152,9 @@ def _rectified_views(read: Callable[[int], Frame], timestamps: np.ndarray,
     def motions(i: int) -> tuple[np.ndarray | None, np.ndarray | None]:
         if not 0 < i < n - 1:
             return None, None
-        return readout_motion_at(poses, timestamps, i, readouts[0]), readout_motion_at(
-            poses, timestamps, i, readouts[1])
+        colour = readout_motion_at(poses, timestamps, i, readouts[0])
+        depth = readout_motion_at(poses, timestamps, i, readouts[1])
+        return colour, depth
 
     return [level.view(read(i), *motions(i)) for i in range(n)]
 
