@@ -125,18 +125,27 @@ def residuals(points, intensities, transform, surface, normals, has_depth, gray,
     return geometric[:n_geometric], photometric[:n_photometric]
 
 
+UPPER = JACOBIAN * (JACOBIAN + 1) // 2
+"""Entries of the normal matrix's upper triangle, row by row: a chunk's sums are kept flat."""
+
+
 @numba.njit(cache=True, inline="always")
-def _add_huber_term(r, scale, huber_k, jac, normal, rhs):
-    """Add one residual, divided by its term's `scale` and Huber-weighted, to ``Jᵀ W J`` and
-    ``Jᵀ W r``."""
+def _add_huber_term(r, scale, huber_k, jac, sums):
+    """Add one residual, divided by its term's `scale` and Huber-weighted, to ``Jᵀ W J``'s
+    upper triangle (``sums[:UPPER]``, row by row) and ``Jᵀ W r`` (``sums[UPPER:]``)."""
     scaled = r / scale
     magnitude = abs(scaled)
     weight = 1.0 if magnitude <= huber_k else huber_k / max(magnitude, 1e-30)
+    j0, j1, j2 = jac[0] / scale, jac[1] / scale, jac[2] / scale
+    j3, j4, j5 = jac[3] / scale, jac[4] / scale, jac[5] / scale
+    rows = (j0, j1, j2, j3, j4, j5)
+    weighted = (weight * j0, weight * j1, weight * j2, weight * j3, weight * j4, weight * j5)
+    k = 0
     for a in range(JACOBIAN):
-        ja = jac[a] / scale
-        rhs[a] += ja * (weight * scaled)
-        for b in range(a, JACOBIAN):  # the upper triangle; `normal_equations` mirrors it
-            normal[a, b] += ja * (weight * (jac[b] / scale))
+        sums[UPPER + a] += rows[a] * (weight * scaled)
+        for b in range(a, JACOBIAN):
+            sums[k] += rows[a] * weighted[b]
+            k += 1
 
 
 @numba.njit(parallel=True, cache=True)
@@ -144,31 +153,38 @@ def normal_equations(points, intensities, transform, surface, normals, has_depth
                      gradient, camera, height, width, max_distance, geometric_scale,
                      photometric_scale, huber_k):  # fmt: skip
     """``(Jᵀ W J [6, 6], Jᵀ W r [6], residuals used)`` at `transform`, each term's residuals
-    divided by its scale and weighted by Huber's function (threshold `huber_k`)."""
+    divided by its scale and weighted by Huber's function (threshold `huber_k`).
+
+    Each chunk sums into an array of its own and writes it out once at its end, so that no two
+    threads write to one cache line point by point; the sums and their order are unchanged."""
     n = points.shape[0]
-    normals_part = np.zeros((SUM_CHUNKS, JACOBIAN, JACOBIAN))
-    rhs_part = np.zeros((SUM_CHUNKS, JACOBIAN))
-    used_part = np.zeros(SUM_CHUNKS, np.int64)
+    chunk_sums = np.zeros((SUM_CHUNKS, UPPER + JACOBIAN))
+    chunk_used = np.zeros(SUM_CHUNKS, np.int64)
     for chunk in numba.prange(SUM_CHUNKS):
-        normal, rhs = normals_part[chunk], rhs_part[chunk]
+        sums = np.zeros(UPPER + JACOBIAN)
         jac = np.empty(JACOBIAN)
+        used = 0
         for i in range(chunk * n // SUM_CHUNKS, (chunk + 1) * n // SUM_CHUNKS):
             x, y, z = _moved(points, i, transform)
             ok, r = geometric_term(x, y, z, surface, normals, has_depth, camera, height, width,
                                    max_distance, jac)  # fmt: skip
             if ok:
-                _add_huber_term(r, geometric_scale, huber_k, jac, normal, rhs)
-                used_part[chunk] += 1
+                _add_huber_term(r, geometric_scale, huber_k, jac, sums)
+                used += 1
             ok, r = photometric_term(x, y, z, intensities[i], gray, gradient, has_depth,
                                      camera, height, width, jac)  # fmt: skip
             if ok:
-                _add_huber_term(r, photometric_scale, huber_k, jac, normal, rhs)
-                used_part[chunk] += 1
-    normal, rhs = normals_part[0].copy(), rhs_part[0].copy()
+                _add_huber_term(r, photometric_scale, huber_k, jac, sums)
+                used += 1
+        chunk_sums[chunk] = sums
+        chunk_used[chunk] = used
+    total = chunk_sums[0].copy()
     for chunk in range(1, SUM_CHUNKS):
-        normal += normals_part[chunk]
-        rhs += rhs_part[chunk]
+        total += chunk_sums[chunk]
+    normal = np.empty((JACOBIAN, JACOBIAN))
+    k = 0
     for a in range(JACOBIAN):
-        for b in range(a):
-            normal[a, b] = normal[b, a]
-    return normal, rhs, used_part.sum()
+        for b in range(a, JACOBIAN):
+            normal[a, b] = normal[b, a] = total[k]
+            k += 1
+    return normal, total[UPPER:].copy(), chunk_used.sum()

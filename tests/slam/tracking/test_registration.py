@@ -131,3 +131,57 @@ def test_kernel_jacobians_match_finite_differences(renderer, term):
             continue  # the association changed within ε (a pixel or cell boundary)
         checked += 1
     assert checked > 0.9 * sum(residual(points[i], i, jac)[0] for i in range(0, len(points), 97))
+
+
+
+def _oracle_normal_equations(problem: _Problem, transform: np.ndarray, scales: tuple[float, float],
+                             huber_k: float) -> tuple[np.ndarray, np.ndarray, int]:  # fmt: skip
+    """``Jᵀ W J``, ``Jᵀ W r`` and the residual count from the kernels' per-point terms, summed
+    by numpy: the oracle of `normal_equations`' chunked sums."""
+    surface, normals, has_depth, gray, gradient, camera, height, width, max_distance = (
+        problem.target
+    )
+    rows, residuals = [], []
+    for p, intensity in zip(problem.points, problem.intensities, strict=True):
+        x = transform[:3, :3] @ p + transform[:3, 3]
+        geometric, photometric = np.empty(6), np.empty(6)
+        terms = (
+            (kernels.geometric_term(*x, surface, normals, has_depth, camera, height, width,
+                                    max_distance, geometric), geometric, scales[0]),
+            (kernels.photometric_term(*x, intensity, gray, gradient, has_depth, camera, height,
+                                      width, photometric), photometric, scales[1]),
+        )  # fmt: skip
+        for (ok, r), jac, scale in terms:
+            if ok:
+                rows.append(jac / scale)
+                residuals.append(r / scale)
+    j, r = np.array(rows), np.array(residuals)
+    weights = np.where(np.abs(r) <= huber_k, 1.0, huber_k / np.maximum(np.abs(r), 1e-30))
+    return (j * weights[:, None]).T @ j, j.T @ (weights * r), len(r)
+
+
+def test_normal_equations_match_a_numpy_oracle_on_any_thread_count(renderer):
+    """The kernel's chunked sums equal numpy's over the same terms (float64), and give the same
+    bits on one thread as on two."""
+    import numba
+
+    c2w = camera_poses(CONFIG)[8]
+    source, target = _view(renderer, c2w @ _offset(2.0, 0.02), 1), _view(renderer, c2w, 2)
+    problem = _Problem(source, target, RegistrationConfig())
+    transform = _offset(1.0, 0.01)
+    scales, huber_k = (0.004, 0.02), 1.345  # small scales: many residuals beyond Huber's knee
+    arguments = (problem.points, problem.intensities, transform, *problem.target, *scales, huber_k)
+    normal, rhs, used = kernels.normal_equations(*arguments)
+    expected_normal, expected_rhs, expected_used = _oracle_normal_equations(
+        problem, transform, scales, huber_k)  # fmt: skip
+    assert used == expected_used > 1000
+    np.testing.assert_allclose(normal, expected_normal, rtol=1e-10, atol=1e-10 * abs(normal).max())
+    np.testing.assert_allclose(rhs, expected_rhs, rtol=1e-10, atol=1e-10 * abs(rhs).max())
+    assert np.array_equal(normal, normal.T)
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        single = kernels.normal_equations(*arguments)
+    finally:
+        numba.set_num_threads(threads)
+    assert np.array_equal(single[0], normal) and np.array_equal(single[1], rhs)
