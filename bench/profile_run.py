@@ -6,8 +6,9 @@ Converts the first --frames of a TUM folder (default: the fr1/rpy excerpt in ../
 runs the `cpu` preset (kernels compiled beforehand on the same frames, so no JIT is counted) and
 prints:
 
-- the stages from ``log.jsonl`` (``stage_s``, summed over the frames) and ``Slam.finish``, in
-  seconds per frame and as shares of the run, from a run without the profiler;
+- the stages from ``log.jsonl`` (``stage_s``, summed over the frames), the estimates made from
+  the first frames, ``Slam.finish`` and the default export that `bgs run` ends with, in seconds
+  per frame and as shares of the run and export, from a run without the profiler;
 - the functions with the most own time from a second, profiled run of the same job (cProfile;
   a numba kernel's time counts to the Python function that calls it, which names it). Python
   calls are slowed by the profiler, so read those shares as an upper bound for Python work.
@@ -30,6 +31,7 @@ from pathlib import Path
 from bgs_batch.config import load_config
 from converters.tum import TumOptions, convert_tum
 from jobs.run import LOG_FILE, run_job
+from outputs.export import RUN_DEFAULTS, export_job
 
 from status_page import recorded
 
@@ -39,14 +41,17 @@ WARM_FRAMES = 4  # a short run first compiles (or loads) every kernel
 TOP_FUNCTIONS = 15
 
 
-def stage_seconds(job: Path) -> dict[str, float]:
-    """Seconds per stage over the run's frames (log.jsonl), plus the end-of-run work."""
+def stage_seconds(job: Path, export_seconds: float) -> dict[str, float]:
+    """Seconds per stage over the run's frames (log.jsonl), the estimates before them, the
+    end-of-run work and the default export."""
     totals: dict[str, float] = defaultdict(float)
     for line in (job / LOG_FILE).read_text().splitlines():
         for stage, seconds in json.loads(line).get("stage_s", {}).items():
             totals[stage] += seconds
     summary = json.loads((job / "summary.json").read_text())
+    totals["estimates (first frames)"] = summary["stage_seconds"]["estimates"]
     totals["end of run (finish)"] = max(0.0, summary["seconds"] - sum(totals.values()))
+    totals["export (bgs run's default)"] = export_seconds
     return dict(sorted(totals.items(), key=lambda kv: -kv[1]))
 
 
@@ -78,7 +83,9 @@ def main() -> None:
         store = convert_tum(args.tum, root / "seq.h5", TumOptions(max_frames=args.frames))
         run_job(store, root / "warm", cfg, max_frames=WARM_FRAMES)
         summary = run_job(store, root / "plain", cfg)
-        stages = stage_seconds(root / "plain")
+        start = time.perf_counter()
+        export_job(root / "plain", RUN_DEFAULTS)
+        stages = stage_seconds(root / "plain", time.perf_counter() - start)
         profile = cProfile.Profile()
         start = time.perf_counter()
         profile.enable()
@@ -86,23 +93,25 @@ def main() -> None:
         profile.disable()
         profiled_seconds = time.perf_counter() - start
 
-    n, total = summary.frames, summary.seconds
+    n, total = summary.frames, sum(stages.values())
     print(f"bench/profile_run.py: {args.tum.name}, first {n} frames, cpu preset"
-          f"{' ' + ' '.join(args.overrides) if args.overrides else ''}; run {total:.1f} s "
-          f"({summary.fps:.2f} fps), {summary.keyframes} keyframes")  # fmt: skip
+          f"{' ' + ' '.join(args.overrides) if args.overrides else ''}; run and export "
+          f"{total:.1f} s ({n / total:.2f} fps end to end), {summary.keyframes} keyframes")
+    # fmt: skip
     print(f"\n  {'stage':<28} {'s/frame':>8} {'share':>7}")
     for stage, seconds in stages.items():
         print(f"  {stage:<28} {seconds / n:>8.3f} {100 * seconds / total:>6.1f}%")
-    print(f"\n  profiled run {profiled_seconds:.1f} s ({profiled_seconds / total:.2f}x the plain "
-          "run); functions by own time (kernels count to their caller):")  # fmt: skip
+    print(f"\n  profiled run {profiled_seconds:.1f} s ({profiled_seconds / summary.seconds:.2f}x "
+          "the plain run); functions by own time (kernels count to their caller):")  # fmt: skip
     print(f"  {'function':<64} {'s/frame':>8} {'share':>7} {'calls/frame':>12}")
     functions = top_functions(profile, TOP_FUNCTIONS)
     for label, own, calls in functions:
         print(f"  {label[:64]:<64} {own / n:>8.3f} {100 * own / profiled_seconds:>6.1f}% "
               f"{calls / n:>12.1f}")  # fmt: skip
     stage, seconds = next(iter(stages.items()))
-    print(f"SUMMARY {summary.fps:.2f} fps; largest stage {stage} {100 * seconds / total:.0f}% "
-          f"({seconds / n:.2f} s/frame); top function {functions[0][0]} "
+    print(f"SUMMARY {n / total:.2f} fps end to end; largest stage {stage} "
+          f"{100 * seconds / total:.0f}% ({seconds / n:.2f} s/frame); "
+          f"top function {functions[0][0]} "
           f"{100 * functions[0][1] / profiled_seconds:.0f}% of the profiled run")  # fmt: skip
 
 

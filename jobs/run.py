@@ -155,6 +155,7 @@ def _run(
     document = {"settings": cfg.to_dict(), "sources": sources}
     write_text(job_dir / "config.json", json.dumps(document, indent=2, sort_keys=True))
     with stop_requests() as stop:
+        clock = time.perf_counter()  # the run's time counts from here: the estimates are part
         n = _frames_to_run(store, max_frames)
         readout = _readout(store, job_dir, cfg, n) if needs_readout(cfg) else None
         if readout is not None:  # in place of the readouts the store left open
@@ -168,9 +169,11 @@ def _run(
             cfg = colour.applied_to(cfg)
             if stop.requested:
                 raise Preempted(stop.requested, "after the colour offset estimate", job_dir)
+        estimates = time.perf_counter() - clock
         slam = Slam(cfg, store.intrinsics, job_dir / SUBMAP_DIR)
         done, previous_seconds, stage_state = _resume(slam, store, job_dir)
-        start = time.perf_counter() - previous_seconds
+        slam.timings.add("estimates", estimates)  # a resumed run reads them back: milliseconds
+        start = clock - previous_seconds
 
         def checkpoint(frames: int, stage: GlobalMapStage | None = None) -> None:
             state = _job_state(slam, time.perf_counter() - start, stage)

@@ -26,6 +26,7 @@ class Timings:
     loop_closure: float = 0.0  # features, detection, registration, pose graph
     refinement: float = 0.0  # uncertainty refinement of the frozen submaps at the end
     global_map: float = 0.0  # the global stage: merge and optimisation (`global_map`)
+    estimates: float = 0.0  # the readout and colour offset estimated from the first frames
 
     def add(self, stage: str, seconds: float) -> None:
         setattr(self, stage, getattr(self, stage) + seconds)
