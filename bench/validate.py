@@ -22,7 +22,7 @@ over seeds, not only on the dev excerpt it was tried on. The sequences:
 - ``v240-auto``, ``v420-auto``, ``hard-auto``: those converted with ``--readout auto``, as a
   camera the converter does not know, so that the run estimates the readout from the frames;
   ``mix-auto``: ``rs-mixed`` with ``--readout auto --depth-readout 0``; ``v240-gs``,
-  ``v420-gs``: converted as global shutters. A fourth table shows the estimates beside the
+  ``v420-gs``: converted as global shutters. A fifth table shows the estimates beside the
   known 30 ms and the ATE of the three runs of each recording, and the mixed room's ATE over
   the room read out alike.
 
@@ -45,12 +45,13 @@ on the synthetic sequences, whose true per-pixel noise σ `bgs synth` writes, th
 correlation of the predicted sensor depth σ with it (`sigma_rank`). A third table scores the map a
 user takes away: ``global.ply`` rendered at ``trajectory.txt``'s poses at input resolution on the
 frames the global stage held out and on the keyframes, beside the submaps' keyframe PSNR, with the
-stage's seconds and its share of the run. The SUMMARY line gives the mean ratio to Open3D over the
-real validation pieces and over the synthetic sequences, the dev ratio, the slowest fps, the
-highest peak memory, the sequences where the full variance was not the best at every seed, the
-smallest margin of the global map's held-out PSNR over the submaps' keyframe PSNR, the largest
-share of a run the global stage took, and the lowest Spearman correlation. ATEs are deterministic
-for a given seed; times depend on the machine's load.
+stage's seconds and its share of the run. A fourth table breaks a run's time down by stage, end to
+end. The SUMMARY line gives the mean ratio to Open3D over the real validation pieces and over the
+synthetic sequences, the dev ratio, the slowest fps, the highest peak memory, the sequences where
+the full variance was not the best at every seed, the smallest margin of the global map's held-out
+PSNR over the submaps' keyframe PSNR, the largest share of a run the global stage took, and the
+lowest Spearman correlation. ATEs are deterministic for a given seed; times depend on the machine's
+load.
 The numba kernels are compiled into their cache by `bgs_batch.warmup` before anything is timed; a
 run's process loads them from there, as `bgs run` does.
 """
@@ -156,6 +157,7 @@ class SequenceResult:
     sigma_rho: list[float] = field(default_factory=list)  # synthetic: per seed, see sigma_rank
     rendering: list[dict[str, float]] = field(default_factory=list)  # per seed, `rendering_scores`
     readouts: list[float | None] = field(default_factory=list)  # s, per seed, when estimated
+    stages: list[dict[str, float]] = field(default_factory=list)  # per seed, `stage_times`
 
     @property
     def ratio(self) -> float:
@@ -225,6 +227,7 @@ def run_sequence(name: str, store: Path, root: Path, seeds: range, overrides: li
         result.lengths.append(path_length(poses[:, :3, 3]))
         result.cpu_per_frame.append(run.cpu_seconds / n)
         result.fps.append(n / (summary.seconds + run.export_seconds))
+        result.stages.append(stage_times(summary, run.export_seconds))
         result.tracking_per_frame.append(summary.stage_seconds["tracking"] / n)
         result.median_iterations.append(
             float(np.median([e["track_iterations"] for e in events if "track_iterations" in e]))
@@ -386,6 +389,37 @@ def print_rendering_table(results: list[SequenceResult]) -> None:
         print(f"{r.name:<9}{cells}")
 
 
+STAGES = ("estimates", "tracking", "mapping", "loop_closure", "refinement", "global_map")
+"""The stages of `summary.json` that the breakdown shows, in the order a run meets them."""
+
+
+def stage_times(summary: RunSummary, export_seconds: float) -> dict[str, float]:
+    """Seconds of a run end to end by stage: the run's own stages (`STAGES`; the sensor
+    network, submap switches and the rest under ``other``) and the default export."""
+    times = {stage: summary.stage_seconds.get(stage, 0.0) for stage in STAGES}
+    times["other"] = max(0.0, summary.seconds - sum(times.values()))
+    times["export"] = export_seconds
+    return times
+
+
+def print_stage_table(results: list[SequenceResult]) -> None:
+    print()
+    print("Where a run's time goes end to end, s/frame (mean over seeds): the readout and colour "
+          "offset estimated from the first frames, tracking, mapping, loop closure, the "
+          "end-of-run refinement, the global stage, the rest of the run (sensor network, submap "
+          "switches, reading frames) and the default export; fps = frames / their sum")
+    names = [*STAGES, "other", "export"]
+    labels = {"loop_closure": "loops", "global_map": "global"}
+    header = (f"{'sequence':<9}" + "".join(f"{labels.get(name, name):>11}" for name in names)
+              + f"{'fps':>7}")  # fmt: skip
+    print(header)
+    print("-" * len(header))
+    for r in results:
+        cells = "".join(f"{statistics.mean(seed[name] for seed in r.stages) / r.frames:>11.3f}"
+                        for name in names)  # fmt: skip
+        print(f"{r.name:<9}{cells}{statistics.mean(r.fps):>7.2f}")
+
+
 def print_readout_table(results: list[SequenceResult]) -> None:
     by_name = {r.name: r for r in results}
     global_shutter = {base: by_name.get(name) for name, (base, readout, _) in
@@ -527,6 +561,7 @@ def main() -> None:
     print()
     print_table(results, seeds)
     print_rendering_table(results)
+    print_stage_table(results)
     print_readout_table(results)
     print(summary_line(results))
 
