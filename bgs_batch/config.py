@@ -623,8 +623,10 @@ PRESETS: dict[str, dict[str, Any]] = {
         # learns the frame's level: an untrained network ranks nothing (docs/experiments.md)
         "uncertainty.sensor_prior": "nguyen",
         # at the end, fit the frozen submaps' r_i and the sensor network by the NLL: the map
-        # term gets the iterations mapping cannot give it; tracking is over by then
-        "uncertainty.refine_passes": 15,
+        # term gets the iterations mapping cannot give it; tracking is over by then (8 passes
+        # at twice the rate rank as 15 did, in half the time: docs/experiments.md)
+        "uncertainty.refine_passes": 8,
+        "uncertainty.refine_lr": 0.1,
         # then set the two parts of Σ_D against each other by the NLL, without the floors that
         # hide their scales from it (docs/method.md §4; measured in docs/experiments.md)
         "uncertainty.calibrate": True,
