@@ -328,6 +328,12 @@ def _run(store: Path, job: Path, overrides: list[str]) -> ChildRun:
     return ChildRun(summary, export_seconds, cpu, peak_rss_mb())
 
 
+def print_header(header: str) -> None:
+    """A table's column header and the rule under it."""
+    print(header)
+    print("-" * len(header))
+
+
 def print_table(results: list[SequenceResult], seeds: range) -> None:
     seed_columns = "".join(f"{f'seed {s}':>8}" for s in seeds)
     header = (f"{'sequence':<9}{'frames':>7}{'Open3D':>8}{seed_columns}{'mean':>8}{'ratio':>7}"
@@ -335,8 +341,7 @@ def print_table(results: list[SequenceResult], seeds: range) -> None:
               f"{'O3D':>6}{'fps':>6}{'track s/f':>10}{'iters':>6}{'warm':>6}"
               f"{'peak MB':>9}")  # fmt: skip
     print("ATE and RPE (1 frame, translation) in cm; ratio = mean ATE / Open3D's ATE")
-    print(header)
-    print("-" * len(header))
+    print_header(header)
     for r in results:
         ates = "".join(f"{a * 100:>8.2f}" for a in r.ates)
         lengths = f"{r.lengths[0]:.2f}/{r.true_length:.2f}/{r.o3d_length:.2f}"
@@ -354,8 +359,7 @@ def print_table(results: list[SequenceResult], seeds: range) -> None:
           "(synthetic only)")  # fmt: skip
     header = (f"{'sequence':<9}" + "".join(f"{name:>12}" for name in DEPTH_VARIANCES)
               + f"{'colour':>10}{'best':>7}{'ρ σ_D':>8}")  # fmt: skip
-    print(header)
-    print("-" * len(header))
+    print_header(header)
     for r in results:
         means = "".join(f"{statistics.mean(seed[name] for seed in r.ause_depth):>12.4f}"
                         for name in DEPTH_VARIANCES)  # fmt: skip
@@ -381,8 +385,7 @@ def print_rendering_table(results: list[SequenceResult]) -> None:
           "The stage does not move the poses: the ATE above is the ATE before and after it.")
     header = f"{'sequence':<9}" + "".join(f"{h:>{f[1:].split('.')[0]}}"
                                         for _, h, f in RENDERING_COLUMNS)  # fmt: skip
-    print(header)
-    print("-" * len(header))
+    print_header(header)
     for r in results:
         cells = "".join(format(_mean_of(r.rendering, key), fmt)
                         for key, _, fmt in RENDERING_COLUMNS)  # fmt: skip
@@ -412,11 +415,9 @@ def print_stage_table(results: list[SequenceResult]) -> None:
     labels = {"loop_closure": "loops", "global_map": "global"}
     header = (f"{'sequence':<9}" + "".join(f"{labels.get(name, name):>11}" for name in names)
               + f"{'fps':>7}")  # fmt: skip
-    print(header)
-    print("-" * len(header))
+    print_header(header)
     for r in results:
-        cells = "".join(f"{statistics.mean(seed[name] for seed in r.stages) / r.frames:>11.3f}"
-                        for name in names)  # fmt: skip
+        cells = "".join(f"{_mean_of(r.stages, name) / r.frames:>11.3f}" for name in names)
         print(f"{r.name:<9}{cells}{statistics.mean(r.fps):>7.2f}")
 
 
@@ -439,8 +440,7 @@ def print_readout_table(results: list[SequenceResult]) -> None:
           "that estimated it, of the run that knew it, and of a global-shutter run")
     header = (f"{'sequence':<10}{'estimate ms':>12}{'error':>8}{'ATE auto':>10}{'known':>8}"
               f"{'auto/known':>11}{'global':>8}")  # fmt: skip
-    print(header)
-    print("-" * len(header))
+    print_header(header)
     for r, known, global_run in rows:
         estimate = readout_ms(r)
         error = f"{estimate / 30 - 1:+.0%}" if estimate == estimate else "-"
