@@ -155,7 +155,7 @@ def _run(
     document = {"settings": cfg.to_dict(), "sources": sources}
     write_text(job_dir / "config.json", json.dumps(document, indent=2, sort_keys=True))
     with stop_requests() as stop:
-        clock = time.perf_counter()  # the run's time counts from here: the estimates are part
+        clock = time.perf_counter()  # the run's time counts from here, the estimates included
         n = _frames_to_run(store, max_frames)
         readout = _readout(store, job_dir, cfg, n) if needs_readout(cfg) else None
         if readout is not None:  # in place of the readouts the store left open
