@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import statistics
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -57,6 +57,18 @@ NORMAL_FLOOR = 1e-9  # of the normal matrix's trace: keeps a degenerate system s
 
 
 @dataclass(frozen=True)
+class Evaluation:
+    """The loss at ``exp(ξ)·w2c`` for ``ξ = twist = 0``, differentiable in `twist` (Gauss-Newton's
+    iterate), with the render and Σ_C, Σ_D there."""
+
+    twist: torch.Tensor  # (6,) float64 zeros, requires grad
+    loss: torch.Tensor
+    out: RasterOutput
+    var_c: torch.Tensor
+    var_d: torch.Tensor
+
+
+@dataclass(frozen=True)
 class Objective:
     """The tracking loss (Eq. 15-17) of one pyramid level against the fixed map: what both
     optimisers and the warm start's choice evaluate at a pose."""
@@ -66,6 +78,8 @@ class Objective:
     level: Level
     variances: Variances  # the frozen network's, at this level
     cfg: Config
+    # evaluations made with `at(..., keep=True)`, by pose, until `at` is asked for them again
+    kept: dict[bytes, Evaluation] = field(default_factory=dict)
 
     def render(self, w2c: torch.Tensor) -> tuple[RasterOutput, torch.Tensor, torch.Tensor]:
         """The render at `w2c` and its total predictive variances Σ_C, Σ_D (Eq. 10, 11)."""
@@ -82,10 +96,18 @@ class Objective:
                              var_c, var_d, self.cfg.tracking)  # fmt: skip
         return loss, out, var_c, var_d
 
-    def loss(self, w2c: torch.Tensor) -> float:
-        """The loss at `w2c`, without a gradient."""
-        with torch.no_grad():
-            return float(self.evaluate(w2c)[0])
+    def at(self, w2c: torch.Tensor, keep: bool = False) -> Evaluation:
+        """The `Evaluation` at `w2c`. With `keep`, the next call at the same pose returns this
+        one instead of rendering again: the warm start renders both of its candidates, and
+        Gauss-Newton starts at the one it chose."""
+        key = w2c.detach().numpy().tobytes()
+        if key in self.kept:
+            return self.kept.pop(key)
+        twist = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+        evaluation = Evaluation(twist, *self.evaluate(se3_exp(twist) @ w2c))
+        if keep:
+            self.kept[key] = evaluation
+        return evaluation
 
 
 @dataclass(frozen=True)
@@ -170,17 +192,21 @@ class Tracker:
             t, sensor = self.cfg.tracking, (sensor_color, sensor_depth)
             schedule = list(zip(self.pyramid(frame), self.iteration_budget(), strict=True))
             start = None
+            # the tracking resolution's objective, which keeps the warm start's renders
+            finest = schedule[-1][0]
+            final_objective = self._objective(gaussians, shapes, finest, sensor)
             if t.warm_start:
-                objective = self._objective(gaussians, shapes, schedule[-1][0], sensor)
-                w2c, start = self.warm_start(gaussians, shapes, frame, w2c, objective)
+                w2c, start = self.warm_start(gaussians, shapes, frame, w2c, final_objective)
             pivot = self.pivot(frame)
             threshold, doubled = self._doubling_threshold(), False
             if start is not None and start["trusted"] and t.warm_iterations:
                 # the registration agreed with constant velocity within bounds, so whichever
                 # start the loss chose is close: refine at tracking resolution only
                 schedule = [(schedule[-1][0], t.warm_iterations)]
-            for depth, ((factor, level), budget) in enumerate(schedule):
-                objective = self._objective(gaussians, shapes, (factor, level), sensor)
+            for depth, (scaled, budget) in enumerate(schedule):
+                level = scaled[1]
+                objective = (final_objective if scaled is finest
+                             else self._objective(gaussians, shapes, scaled, sensor))  # fmt: skip
                 lr_scale = t.level_lr_factor**depth
                 # the coarsest level tests its initial loss; finer levels inherit the doubling
                 double_above = threshold if depth == 0 else math.inf
@@ -239,7 +265,8 @@ class Tracker:
                   "moved_deg": moved_deg, "trusted": trusted}  # fmt: skip
         use = trusted
         if trusted and objective is not None:
-            losses = [objective.loss(pose) for pose in (w2c, registered)]
+            losses = [float(objective.at(pose, keep=True).loss.detach())
+                      for pose in (w2c, registered)]  # fmt: skip
             report["loss_ratio"] = losses[1] / losses[0] if losses[0] > 0 else 1.0
             use = losses[1] < losses[0]
             report["start"] = "registration" if use else "constant_velocity"
@@ -334,8 +361,9 @@ class Tracker:
         gradient = normal = None
         while used < budget:
             used += 1
-            twist = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-            loss, out, var_c, var_d = objective.evaluate(se3_exp(twist) @ w2c)
+            evaluation = objective.at(w2c)
+            loss, out, var_c, var_d = (evaluation.loss, evaluation.out, evaluation.var_c,
+                                       evaluation.var_d)  # fmt: skip
             value = float(loss.detach())
             if used == 1 and value > double_above:
                 budget, doubled = 2 * budget, True
@@ -347,7 +375,7 @@ class Tracker:
                     elif ratio < TRUST_POOR:
                         scale /= TRUST_GROW
                 loss.backward()
-                gradient = twist.grad
+                gradient = evaluation.twist.grad
                 normal = self._normal_matrix(out, objective.level, var_c, var_d)
                 best, best_w2c = value, w2c
                 best_images = tuple(x.detach() for x in (out.color, out.depth, var_c, var_d))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+import bgs_batch.slam.tracking.tracker as tracker_module
 from bgs_batch.config import load_config
 from bgs_batch.render import se3_exp, shape_matrices
 from bgs_batch.slam import Slam
@@ -138,3 +139,31 @@ def test_gauss_newton_stops_when_its_model_predicts_too_small_a_gain(mapped):
             for p in slam.gmap.params.values():
                 p.requires_grad_(True)
     assert used[0.5] == 1 < used[1e-4] <= used[0.0], used
+
+
+def test_gauss_newton_starts_from_the_warm_starts_render_of_its_pose(mapped, monkeypatch):
+    """The start the warm start chose is rendered once, and the tracked pose is bit for bit the
+    one a second render of it gives."""
+    slam, full, sensor, true_w2c = mapped
+    renders = []
+    counted = tracker_module.render
+
+    def counting_render(*args, **kwargs):
+        renders.append(1)
+        return counted(*args, **kwargs)
+
+    monkeypatch.setattr(tracker_module, "render", counting_render)
+
+    def track() -> tuple[torch.Tensor, int]:
+        renders.clear()
+        result = Tracker(slam.cfg).track(slam.gmap, full, *sensor, _off(true_w2c, 3.0, 0.03))
+        assert result.start["trusted"]
+        return result.w2c, len(renders)
+
+    kept_w2c, kept_renders = track()
+    at = tracker_module.Objective.at
+    monkeypatch.setattr(tracker_module.Objective, "at",
+                        lambda self, w2c, keep=False: at(self, w2c))  # keep nothing
+    again_w2c, again_renders = track()
+    assert kept_renders == again_renders - 1
+    assert torch.equal(kept_w2c, again_w2c)
