@@ -78,7 +78,7 @@ class Objective:
     level: Level
     variances: Variances  # the frozen network's, at this level
     cfg: Config
-    # evaluations made with `at(..., keep=True)`, by pose, until `at` is asked for them again
+    # evaluations handed to `keep`, by pose, until `at` is asked for them
     kept: dict[bytes, Evaluation] = field(default_factory=dict)
 
     def render(self, w2c: torch.Tensor) -> tuple[RasterOutput, torch.Tensor, torch.Tensor]:
@@ -96,18 +96,22 @@ class Objective:
                              var_c, var_d, self.cfg.tracking)  # fmt: skip
         return loss, out, var_c, var_d
 
-    def at(self, w2c: torch.Tensor, keep: bool = False) -> Evaluation:
-        """The `Evaluation` at `w2c`. With `keep`, the next call at the same pose returns this
-        one instead of rendering again: the warm start renders both of its candidates, and
-        Gauss-Newton starts at the one it chose."""
-        key = w2c.detach().numpy().tobytes()
-        if key in self.kept:
-            return self.kept.pop(key)
+    def at(self, w2c: torch.Tensor) -> Evaluation:
+        """The `Evaluation` at `w2c`: the one kept for this pose (`keep`), else a new render."""
+        kept = self.kept.pop(_pose_key(w2c), None)
+        if kept is not None:
+            return kept
         twist = torch.zeros(6, dtype=torch.float64, requires_grad=True)
-        evaluation = Evaluation(twist, *self.evaluate(se3_exp(twist) @ w2c))
-        if keep:
-            self.kept[key] = evaluation
-        return evaluation
+        return Evaluation(twist, *self.evaluate(se3_exp(twist) @ w2c))
+
+    def keep(self, w2c: torch.Tensor, evaluation: Evaluation) -> None:
+        """Hand `evaluation` to the next `at(w2c)`: the warm start renders the start it
+        chooses, and Gauss-Newton's first iteration takes that render instead of another."""
+        self.kept[_pose_key(w2c)] = evaluation
+
+
+def _pose_key(w2c: torch.Tensor) -> bytes:
+    return w2c.detach().numpy().tobytes()
 
 
 @dataclass(frozen=True)
@@ -265,10 +269,11 @@ class Tracker:
                   "moved_deg": moved_deg, "trusted": trusted}  # fmt: skip
         use = trusted
         if trusted and objective is not None:
-            losses = [float(objective.at(pose, keep=True).loss.detach())
-                      for pose in (w2c, registered)]  # fmt: skip
+            evaluations = [objective.at(pose) for pose in (w2c, registered)]
+            losses = [float(e.loss.detach()) for e in evaluations]
             report["loss_ratio"] = losses[1] / losses[0] if losses[0] > 0 else 1.0
             use = losses[1] < losses[0]
+            objective.keep(registered if use else w2c, evaluations[1 if use else 0])
             report["start"] = "registration" if use else "constant_velocity"
         return (registered if use else w2c), report
 
