@@ -24,6 +24,7 @@ from bgs_batch.slam.loss_kernels import l1_nll_terms
 from bgs_batch.slam.losses import mapping_loss, predictive_variances
 from bgs_batch.slam.seeding import (
     backproject,
+    depth_push,
     far_from,
     keyframe_seed_pixels,
     submap_seed_pixels,
@@ -79,7 +80,7 @@ class Mapper:
             pixels = keyframe_seed_pixels(out.alpha[..., 0].numpy(), out.depth[..., 0].numpy(),
                                           depth, s, rng)  # fmt: skip
         points = backproject(depth, pixels, intrinsics_of(keyframe.level), keyframe.c2w,
-                             s.depth_push)  # fmt: skip
+                             depth_push(self.cfg))  # fmt: skip
         keep = far_from(gmap.means.detach().numpy(), points, s.min_distance)
         colors = keyframe.level.rgb.reshape(-1, 3).numpy()[pixels[keep]]
         return gmap.add(points[keep], colors, s.initial_opacity, self.cfg.uncertainty.initial_logit)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from bgs_batch.config import SeedingConfig
+from bgs_batch.config import Config, SeedingConfig
 from bgs_batch.geometry import kd_tree
 
 CANNY_THRESHOLDS = (100, 200)
@@ -71,6 +71,19 @@ def backproject(
     fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
     cam = np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=1)
     return cam @ c2w[:3, :3].T + c2w[:3, 3]
+
+
+def depth_push(cfg: Config) -> float:
+    """How far behind the measured surface this camera's seeds sit, as a factor of their depth:
+    ``seeding.depth_push`` when either image has a rolling shutter (the run's readouts, known or
+    estimated), ``seeding.global_shutter_depth_push`` when both read out at once (docs/method.md
+    §5)."""
+    s = cfg.seeding
+    readouts = (cfg.rolling_shutter_readout, cfg.depth_rolling_shutter_readout)
+    rolling = any(readout or 0.0 for readout in readouts)
+    if rolling or s.global_shutter_depth_push is None:
+        return s.depth_push
+    return s.global_shutter_depth_push
 
 
 def far_from(existing: np.ndarray, candidates: np.ndarray, min_distance: float) -> np.ndarray:

@@ -1,16 +1,19 @@
 """Seeding, Gaussian-map bookkeeping, image pyramids, submap switching and ATE."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 
-from bgs_batch.config import MappingConfig, SeedingConfig, SubmapConfig
+from bgs_batch.config import MappingConfig, SeedingConfig, SubmapConfig, load_config
 from bgs_batch.geometry import pose_matrix
 from bgs_batch.metrics import align_rigid, ate
 from bgs_batch.render import Camera
 from bgs_batch.slam.frames import Level, block_mean, downsample, repeat_blocks
 from bgs_batch.slam.gaussian_map import GaussianMap
+from bgs_batch.slam.mapping import Keyframe, Mapper
 from bgs_batch.slam.seeding import backproject, far_from, keyframe_seed_pixels, submap_seed_pixels
 from bgs_batch.slam.submaps import exceeds_motion
 
@@ -167,3 +170,25 @@ def test_ate_closed_forms():
     gt_nan = gt.copy()
     gt_nan[3] = np.nan
     assert ate(moved, gt_nan)["frames"] == 49
+
+
+@pytest.mark.parametrize(("preset", "readouts", "push"), [
+    ("cpu", (0.0, 0.0), 1.0),  # both images at once: seeds on the surface
+    ("cpu", (0.03, 0.03), 1.005),  # a rolling shutter in either image keeps the push
+    ("cpu", (0.03, 0.0), 1.005),
+    ("cpu", (0.0, 0.03), 1.005),
+    ("paper", (0.0, 0.0), 1.005),  # LoopSplat's push for every camera
+])  # fmt: skip
+def test_seeds_sit_behind_the_surface_by_the_cameras_push(preset, readouts, push):
+    cfg = dataclasses.replace(load_config(preset), rolling_shutter_readout=readouts[0],
+                              depth_rolling_shutter_readout=readouts[1])  # fmt: skip
+    height, width = 24, 32
+    rgb = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(0))
+    depth = torch.full((height, width, 1), 2.0)
+    level = Level(rgb, depth, Camera(fx=50.0, fy=50.0, cx=15.5, cy=11.5, width=width,
+                                     height=height))  # fmt: skip
+    gmap = GaussianMap()
+    added = Mapper(cfg, None, None).seed(gmap, Keyframe(0, level, np.eye(4)), True,
+                                         np.random.default_rng(0))  # fmt: skip
+    assert added > 0
+    np.testing.assert_allclose(gmap.means.detach().numpy()[:, 2], 2.0 * push, rtol=1e-6)
