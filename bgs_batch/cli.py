@@ -232,6 +232,7 @@ def convert_tum(ctx: click.Context, folder: Path, output: Path | None, **options
 
 @convert.command("scannet")
 @click.argument("path", type=click.Path(path_type=Path))
+@_readout_options("auto")
 @_conversion_options
 @click.pass_context
 def convert_scannet(ctx: click.Context, path: Path, output: Path | None, **options) -> None:
@@ -241,7 +242,8 @@ def convert_scannet(ctx: click.Context, path: Path, output: Path | None, **optio
     intrinsic/intrinsic_depth.txt. Colour is resized to the depth resolution (area averaging) and
     the depth intrinsics are stored; invalid (-inf) poses become NaN and the frames are kept.
     Timestamps are frame index / 30 Hz, as exports carry none. The store records the reference
-    systems' 12 px border crop for 640x480 frames, which `bgs run` applies by default.
+    systems' 12 px border crop for 640x480 frames, which `bgs run` applies by default, and the
+    readout as unknown unless --readout gives it: `bgs run` estimates it from the frames.
 
     \b
     Example:

@@ -10,7 +10,6 @@ is opened once for both passes (opening a file-compressed ``.db3`` decompresses 
 
 from __future__ import annotations
 
-import math
 import weakref
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import closing
@@ -23,7 +22,7 @@ import numpy as np
 
 from bgs_batch.errors import InputError
 from bgs_batch.geometry import interpolate_poses
-from bgs_batch.store import READOUT_UNKNOWN, StoreMeta
+from bgs_batch.store import StoreMeta
 from converters.association import associate, association_summary
 from converters.bag_index import (
     BAG_ERRORS,
@@ -37,6 +36,7 @@ from converters.bag_index import (
 )
 from converters.bag_readers import BagReader
 from converters.pipeline import SourceFrame
+from converters.readout import readout_source, stored_readout
 from converters.registration import DepthRegistration
 from converters.ros_images import (
     COLOR,
@@ -128,7 +128,8 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
         depth_scale_source=scale_source,
         stride=options.stride,
         max_frames=options.max_frames,
-        rolling_shutter_readout_source=_readout_source(options),
+        rolling_shutter_readout_source=readout_source(options.readout, "a bag names no "
+                                                                        "readout"),
         **registration_provenance,
         **gt_provenance,
     )
@@ -140,7 +141,7 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
         depth_scale=depth_scale,
         distortion=(camera.distortion + (0.0,) * STORED_DISTORTION_TERMS)[:STORED_DISTORTION_TERMS],
         has_gt=poses is not None,
-        rolling_shutter_readout=READOUT_UNKNOWN if options.readout is None else options.readout,
+        rolling_shutter_readout=stored_readout(options.readout),
         depth_rolling_shutter_readout=options.depth_readout,
         # registered here, with the recorded extrinsic, or by the driver (the depth image has
         # its own CameraInfo, equal to the colour's); otherwise nobody says: `bgs run` checks
@@ -152,12 +153,6 @@ def _plan(path: Path, options: BagOptions, reader: BagReader) -> BagPlan:
     frames = _stream_frames(reader, path, rgb, depth, pairs, stamps, poses, decoder)
     weakref.finalize(frames, reader.close)  # a second pass that never starts
     return BagPlan(frames, len(pairs), meta, (association_note,))
-
-
-def _readout_source(options: BagOptions) -> str:
-    if options.readout is None or math.isnan(options.readout):
-        return "unknown: `bgs run` estimates it from the frames (a bag names no readout)"
-    return "--readout"
 
 
 def _choose_topics(

@@ -24,6 +24,7 @@ from bgs_batch.store import StoreMeta
 from converters import image_codec
 from converters.image_codec import ImageDecodeError
 from converters.pipeline import SourceFrame
+from converters.readout import readout_source, stored_readout
 from converters.sens import SensFrame, SensHeader, read_frame, read_sens_index
 
 SCANNET_FPS = 30.0  # exports carry no timestamps (so .sens ones are not used either): 30 Hz
@@ -43,6 +44,10 @@ class ScanNetOptions:
 
     stride: int = 1
     max_frames: int | None = None
+    # s over which the colour (and the depth) image's rows are read out; ScanNet names no
+    # readout, so the default leaves it to `bgs run` to estimate (READOUT_UNKNOWN)
+    readout: float | None = None
+    depth_readout: float | None = None  # the depth image's, when it differs (None: the same)
 
 
 @dataclass(frozen=True)
@@ -94,6 +99,8 @@ def plan_scannet(path: Path, options: ScanNetOptions) -> ScanNetPlan:
         "stride": options.stride,
         "max_frames": options.max_frames,
         "crop_edge_source": crop_source,
+        "rolling_shutter_readout_source": readout_source(options.readout,
+                                                         "ScanNet names no readout"),
     }
     meta = StoreMeta(
         source_format="scannet",
@@ -103,6 +110,8 @@ def plan_scannet(path: Path, options: ScanNetOptions) -> ScanNetPlan:
         depth_scale=source.depth_scale,
         has_gt=True,
         crop_edge=crop_edge,
+        rolling_shutter_readout=stored_readout(options.readout),
+        depth_rolling_shutter_readout=options.depth_readout,
         provenance=provenance,
     )
     return ScanNetPlan(frames, len(frames), meta)

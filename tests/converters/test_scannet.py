@@ -164,3 +164,21 @@ def test_not_a_scene(tmp_path):
     out = tmp_path / "out.h5"
     (tmp_path / "empty").mkdir()
     assert_refused(convert(tmp_path / "empty", out), out, "intrinsic_depth.txt is missing")
+
+
+def test_the_readout_is_left_to_bgs_run_unless_given(scene, tmp_path):
+    source = write_scene_sens(tmp_path / "r.sens", scene)
+    assert convert(source, tmp_path / "default.h5").exit_code == 0
+    with FrameStore(tmp_path / "default.h5") as store:  # ScanNet names no readout: estimated
+        assert np.isnan(store.rolling_shutter_readout)
+        assert np.isnan(store.depth_rolling_shutter_readout)
+        assert "estimates it" in store.provenance["rolling_shutter_readout_source"]
+    told = tmp_path / "told.h5"  # rolling colour, global-shutter depth
+    assert convert(source, told, "--readout", "0.03", "--depth-readout", "0").exit_code == 0
+    with FrameStore(told) as store:
+        assert store.rolling_shutter_readout == pytest.approx(0.03)
+        assert store.depth_rolling_shutter_readout == 0
+        assert store.provenance["rolling_shutter_readout_source"] == "--readout"
+    bad = tmp_path / "bad.h5"
+    assert convert(source, bad, "--readout", "-1").exit_code == 2
+    assert not bad.exists()
