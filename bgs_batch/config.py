@@ -653,10 +653,6 @@ PRESETS: dict[str, dict[str, Any]] = {
         "seeding.new_submap_points": 30_000,
         "seeding.new_submap_gradient_points": 15_000,
         "seeding.new_frame_points": 10_000,
-        # a global-shutter camera's seeds on the measured surface: there the push only makes the
-        # map, and the trajectory tracked against it, 0.5-1.7 % too large; frames with a rolling
-        # shutter keep it, as their rectified rows track better with it (docs/experiments.md)
-        "seeding.global_shutter_depth_push": 1.0,
         # a colour camera that does not sit on its depth camera is found from the first frames
         # and resampled onto it; registered cameras are kept as they are (docs/method.md §6)
         "colour_offset.estimate": True,

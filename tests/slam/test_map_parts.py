@@ -172,15 +172,18 @@ def test_ate_closed_forms():
     assert ate(moved, gt_nan)["frames"] == 49
 
 
-@pytest.mark.parametrize(("preset", "readouts", "push"), [
-    ("cpu", (0.0, 0.0), 1.0),  # both images at once: seeds on the surface
-    ("cpu", (0.03, 0.03), 1.005),  # a rolling shutter in either image keeps the push
-    ("cpu", (0.03, 0.0), 1.005),
-    ("cpu", (0.0, 0.03), 1.005),
-    ("paper", (0.0, 0.0), 1.005),  # LoopSplat's push for every camera
+ON_SURFACE = ["seeding.global_shutter_depth_push=1.0"]
+
+
+@pytest.mark.parametrize(("overrides", "readouts", "push"), [
+    (ON_SURFACE, (0.0, 0.0), 1.0),  # both images at once: seeds on the surface
+    (ON_SURFACE, (0.03, 0.03), 1.005),  # a rolling shutter in either image keeps the push
+    (ON_SURFACE, (0.03, 0.0), 1.005),
+    (ON_SURFACE, (0.0, 0.03), 1.005),
+    ([], (0.0, 0.0), 1.005),  # unset: LoopSplat's push for every camera
 ])  # fmt: skip
-def test_seeds_sit_behind_the_surface_by_the_cameras_push(preset, readouts, push):
-    cfg = dataclasses.replace(load_config(preset), rolling_shutter_readout=readouts[0],
+def test_seeds_sit_behind_the_surface_by_the_cameras_push(overrides, readouts, push):
+    cfg = dataclasses.replace(load_config("cpu", overrides), rolling_shutter_readout=readouts[0],
                               depth_rolling_shutter_readout=readouts[1])  # fmt: skip
     height, width = 24, 32
     rgb = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(0))
