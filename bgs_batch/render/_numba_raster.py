@@ -152,6 +152,34 @@ def compute_rects(means2d, conics, opacities, width, height):
     return rects
 
 
+RADIX_BITS = 11
+"""Bits per pass of :func:`radix_order`: three passes cover a 32-bit key with 2048 buckets each."""
+
+
+@numba.njit(cache=True)
+def radix_order(keys):
+    """Indices that sort the uint32 ``keys`` ascending, ties by index (an LSD radix sort: each
+    pass is stable, so equal keys keep their index order, exactly as a stable argsort)."""
+    n = keys.shape[0]
+    buckets = 1 << RADIX_BITS
+    order = np.arange(n)
+    scratch = np.empty(n, np.int64)
+    counts = np.empty(buckets + 1, np.int64)
+    for shift in range(0, 32, RADIX_BITS):
+        counts[:] = 0
+        for i in range(n):
+            counts[((keys[i] >> shift) & (buckets - 1)) + 1] += 1
+        for b in range(buckets):
+            counts[b + 1] += counts[b]
+        for i in range(n):
+            g = order[i]
+            digit = (keys[g] >> shift) & (buckets - 1)
+            scratch[counts[digit]] = g
+            counts[digit] += 1
+        order, scratch = scratch, order
+    return order
+
+
 @numba.njit(cache=True)
 def bin_tiles(rects, order, tiles_x, n_tiles):
     """Counting sort of (tile, Gaussian) intersections by tile, depth ordered within a tile.

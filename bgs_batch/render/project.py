@@ -103,7 +103,8 @@ class _ProjectNumba(torch.autograd.Function):
             means2d, conics, depths, visible,
         )  # fmt: skip
         ids = np.flatnonzero(visible)
-        out = [torch.from_numpy(a[ids]) for a in (means2d, conics, depths)]
+        # np.take: the same rows as a[ids], several times faster for row arrays
+        out = [torch.from_numpy(np.take(a, ids, axis=0)) for a in (means2d, conics, depths)]
         ctx.arrays, ctx.params, ctx.ids, ctx.conics = arrays, params, ids, out[1].numpy()
         ctx.shapes = shape_np
         ids = torch.from_numpy(ids)

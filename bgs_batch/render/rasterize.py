@@ -110,20 +110,19 @@ def scratch(name: str, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
 
 def depth_order(depths: np.ndarray) -> np.ndarray:
     """Indices that sort `depths` ascending, ties by index: exactly
-    ``np.argsort(depths, kind="stable")``, for float32 about 4× faster.
+    ``np.argsort(depths, kind="stable")``, for float32 about 10× faster.
 
-    Each float32 depth's bits, made order preserving as a signed integer (negative values flip
-    their magnitude bits), form the high half of a unique key whose low half is the index;
-    numpy sorts integers with SIMD (a stable argsort of floats is a timsort), and unique keys
-    leave no order to chance. ±0 and NaN do not occur: projection keeps only depths beyond the
-    near plane. Float64 (the tests' oracle precision) keeps the stable argsort.
+    Each float32 depth's bits, made order preserving as an unsigned integer (the sign bit set
+    for non-negative values, all bits flipped for negative ones), are the key of a stable radix
+    sort (:func:`._numba_raster.radix_order`), which leaves no order to chance. ±0 and NaN do
+    not occur: projection keeps only depths beyond the near plane. Float64 (the tests' oracle
+    precision) keeps the stable argsort.
     """
-    if depths.dtype != np.float32 or depths.size >= 2**32:
+    if depths.dtype != np.float32:
         return np.argsort(depths, kind="stable")
-    bits = depths.view(np.int32).astype(np.int64)
-    bits ^= (bits >> 31) & 0x7FFFFFFF
-    keys = np.sort((bits << 32) | np.arange(depths.size, dtype=np.int64))
-    return keys & 0xFFFFFFFF
+    bits = depths.view(np.uint32)
+    keys = np.where(bits >> 31, ~bits, bits | np.uint32(0x80000000))
+    return nr.radix_order(keys)
 
 
 def to_numpy(t: torch.Tensor) -> np.ndarray:

@@ -296,6 +296,8 @@ def test_depth_order_is_the_stable_argsort(dtype):
     depths[2::13] = np.float32(1e30)
     order = depth_order(depths)
     assert np.array_equal(order, np.argsort(depths, kind="stable"))
+    for few in (depths[:0], depths[:1], depths[:2]):  # a view with nothing or little in it
+        assert np.array_equal(depth_order(few), np.argsort(few, kind="stable"))
 
 
 def test_rejects_bad_inputs():
