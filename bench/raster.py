@@ -1,9 +1,10 @@
 """Benchmark of the CPU rasterizer on the room scene of docs/method.md §10.
 
-Run ``.venv/bin/python bench/raster.py`` (float32, 2 threads). Every case renders colour, depth,
-alpha and both variances and back-propagates random upstream gradients; the tracking case
-differentiates the pose only. Each backward starts from cleared gradients (``grad = None``), as
-every mapping and tracking iteration does, so no run adds into the previous run's gradients.
+Run ``.venv/bin/python bench/raster.py`` (float32; a run's threads: numba on 2, torch on
+``jobs.run.TORCH_THREADS``). Every case renders colour, depth, alpha and both variances and
+back-propagates random upstream gradients; the tracking case differentiates the pose only.
+Each backward starts from cleared gradients (``grad = None``), as every mapping and tracking
+iteration does, so no run adds into the previous run's gradients.
 Times are the minimum of ``REPEATS`` runs after ``WARMUP``.
 
 JIT rows start fresh processes: *cold* with an empty temporary ``NUMBA_CACHE_DIR``, *warm* with
@@ -29,13 +30,13 @@ import time
 import bgs_batch.render  # noqa: F401  (first: sets OMP_WAIT_POLICY before torch starts its pool)
 
 # isort: on
-import numba
 import torch
 
 from bgs_batch.render import _numba_raster as nr
 from bgs_batch.render import project, rasterize, render, se3_exp
 from bgs_batch.render.render import Gaussians
 from bgs_batch.render.testing import VGA, room_gaussians, room_viewmat
+from jobs.run import set_threads
 
 from status_page import recorded
 
@@ -153,8 +154,7 @@ def _jit_seconds(cache_dir: str) -> tuple[float, float]:
 
 
 def main() -> None:
-    torch.set_num_threads(THREADS)
-    numba.set_num_threads(THREADS)
+    set_threads(THREADS)  # as a run: numba's kernels on THREADS, torch on TORCH_THREADS
     header = (
         f"{'case':<26}{'visible':>8}{'fwd ms':>9}{'bwd ms':>9}{'total':>9}{'target':>9}"
         f"{'vs ref':>9}{'vs floor':>10}{'cpu ms':>9}  status"

@@ -82,10 +82,12 @@ SUBMAP_DIR = "submaps"
 TIMING_FIELDS = ("elapsed_s", "stage_s")
 """Event fields that measure time: the only ones that differ between runs of the same job."""
 log = logging.getLogger(__name__)
-TORCH_THREADS = 2
+TORCH_THREADS = 1
 """Torch's threads, whatever `threads` says: torch splits its sums by thread count, so only a
-constant keeps every machine's and every setting's results equal. Its idle pool sleeps
-(``OMP_WAIT_POLICY=PASSIVE``), so it does not slow numba's kernels."""
+constant keeps every machine's and every setting's results equal. One, because torch's work
+here is small tensors (320×240 images, the sensor network at 80×60, Adam on the submap): a
+sleeping pool (``OMP_WAIT_POLICY=PASSIVE``, which keeps it from slowing numba's kernels) takes
+longer to wake than such an operation takes on one core (docs/experiments.md)."""
 
 
 def set_threads(threads: int) -> None:
