@@ -36,7 +36,7 @@ from bgs_batch.render import _numba_raster as nr
 from bgs_batch.render import project, rasterize, render, se3_exp
 from bgs_batch.render.render import Gaussians
 from bgs_batch.render.testing import VGA, room_gaussians, room_viewmat
-from jobs.run import set_threads
+from jobs.run import TORCH_THREADS, set_threads
 
 from status_page import recorded
 
@@ -160,7 +160,8 @@ def main() -> None:
         f"{'vs ref':>9}{'vs floor':>10}{'cpu ms':>9}  status"
     )
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    print(f"float32, {THREADS} threads, min of {REPEATS} runs; load average before: {load}")
+    print(f"float32, numba {THREADS} threads, torch {TORCH_THREADS}, min of {REPEATS} runs; "
+          f"load average before: {load}")
     print(header)
     print("-" * len(header))
     met, gaps, profiles = 0, [], []
