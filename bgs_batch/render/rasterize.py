@@ -110,7 +110,7 @@ def scratch(name: str, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
 
 def depth_order(depths: np.ndarray) -> np.ndarray:
     """Indices that sort `depths` ascending, ties by index: exactly
-    ``np.argsort(depths, kind="stable")``, for float32 about 10× faster.
+    ``np.argsort(depths, kind="stable")``, for float32 several times faster.
 
     Each float32 depth's bits, made order preserving as an unsigned integer (the sign bit set
     for non-negative values, all bits flipped for negative ones), are the key of a stable radix
