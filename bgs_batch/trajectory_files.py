@@ -26,7 +26,9 @@ def write_tum(path: Path, timestamps: np.ndarray, c2w: np.ndarray) -> None:
     with open(path, "w") as fh:
         fh.write(TUM_HEADER)
         for t, pose, q in zip(timestamps[known], c2w[known], quats, strict=True):
-            values = " ".join(f"{v:.9f}" for v in (*pose[:3, 3], *q))
+            # + 0.0 turns a value that rounds to −0 into 0: a file read back and written again
+            # must not flip the sign of a zero (tiny components differ in the last bits)
+            values = " ".join(f"{round(float(v), 9) + 0.0:.9f}" for v in (*pose[:3, 3], *q))
             fh.write(f"{t:.6f} {values}\n")
 
 

@@ -41,3 +41,14 @@ def test_kitti_round_trip_is_row_major(tmp_path):
     np.testing.assert_allclose(read_kitti(tmp_path / "t.kitti"), poses, atol=1e-8)
     with pytest.raises(ValueError):
         write_kitti(tmp_path / "bad.kitti", np.full((1, 4, 4), np.nan))
+
+
+def test_a_tum_file_written_again_from_its_own_poses_is_the_same(tmp_path):
+    """Exports write trajectory.txt again from the poses read back: a component that rounds to
+    zero is written as 0, never −0, whichever side of zero its last bits fall."""
+    c2w = pose_matrix(np.array([[1e-12, -1e-12, 0.5]]), np.array([[-1e-12, 1e-12, 0.0, 1.0]]))
+    first, second = tmp_path / "a.tum", tmp_path / "b.tum"
+    write_tum(first, np.array([0.0]), c2w)
+    write_tum(second, *read_tum(first))
+    assert "-0.000000000" not in first.read_text()
+    assert second.read_bytes() == first.read_bytes()
