@@ -252,11 +252,11 @@ class SeedingConfig:
         0.01, NON_NEGATIVE, "candidates closer than this to an existing Gaussian are dropped (m)")
     depth_push: float = setting(
         1.005, Range(0.5, 2), "seeds sit this factor of their depth away (1.005: 0.5 % behind the "
-        "surface)")
-    global_shutter_depth_push: float | None = setting(
-        None, Range(0.5, 2), "... for a camera whose colour and depth both have a global shutter "
-        "(None: depth_push)")
+        "surface, LoopSplat's)")
     initial_opacity: float = setting(0.5, Range(0, 1, low_open=True), "opacity of a new Gaussian")
+    flatness: float = setting(
+        1.0, Range(0.01, 1), "a new Gaussian's scale across the measured surface, as a share of "
+        "its scale along it (1: isotropic)")
 
 
 @dataclass
@@ -653,6 +653,11 @@ PRESETS: dict[str, dict[str, Any]] = {
         "seeding.new_submap_points": 30_000,
         "seeding.new_submap_gradient_points": 15_000,
         "seeding.new_frame_points": 10_000,
+        # seeds on the measured surface, as discs across its normal: their depth planes render
+        # the surface's depth without the bias that pushing seeds behind it offset in part
+        # (docs/method.md §1, §5)
+        "seeding.depth_push": 1.0,
+        "seeding.flatness": 0.1,
         # a colour camera that does not sit on its depth camera is found from the first frames
         # and resampled onto it; registered cameras are kept as they are (docs/method.md §6)
         "colour_offset.estimate": True,

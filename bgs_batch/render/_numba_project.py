@@ -2,8 +2,11 @@
 
 Per Gaussian: ``p = R μ + t`` (world-to-camera ``viewmat = [R t]``), ``M = R_q(q̂)·diag(e^s)``,
 ``K = J R M`` with the perspective Jacobian ``J`` at ``p``, screen covariance
-``Σ₂ = K Kᵀ + 0.3·I`` and conic ``Σ₂⁻¹``. The backward is the hand-derived chain rule of these
-steps; the pose gradient is reduced serially over Gaussians, so it is deterministic.
+``Σ₂ = K Kᵀ + 0.3·I``, conic ``Σ₂⁻¹`` and depth slope ``s = Σ_s⁻¹ q`` with ``q = K Mᵀ Rᵀ e_z``
+= ``Cov(p, z)`` and ``Σ_s = K Kᵀ + ε·tr(K Kᵀ)·I`` (the screen gradient of the depth of the
+Gaussian's plane: the mean of z given the pixel; ε = ``SLOPE_RIDGE``). The backward is the
+hand-derived chain rule of these steps; the pose gradient is reduced serially over Gaussians,
+so it is deterministic.
 All floating-point constants enter through the typed ``params`` array (see
 :func:`project_params`), which keeps float32 kernels in float32.
 """
@@ -15,10 +18,10 @@ import numpy as np
 
 from ._numba_raster import pixel_rect
 from .camera import Camera
-from .constants import FRUSTUM_MARGIN, LOWPASS, NEAR_PLANE
+from .constants import FRUSTUM_MARGIN, LOWPASS, NEAR_PLANE, SLOPE_RIDGE
 
 (P_FX, P_FY, P_CX, P_CY, P_LOWPASS, P_NEAR, P_CENTRE_X, P_CENTRE_Y, P_GUARD_X, P_GUARD_Y,
- P_ZERO, P_HALF, P_ONE, P_TWO) = range(14)  # fmt: skip
+ P_ZERO, P_HALF, P_ONE, P_TWO, P_RIDGE) = range(15)  # fmt: skip
 
 N_POSE = 12
 """Pose gradient entries: ∂L/∂R (row-major 3×3), then ∂L/∂t."""
@@ -36,14 +39,14 @@ sharing of output rows, dealing them balances maps whose visible part is not uni
 def project_params(camera: Camera | None, dtype: np.dtype) -> np.ndarray:
     """The typed parameter array of the projection kernels for ``camera`` (None: only the
     numeric constants, enough for :func:`shape_matrices`)."""
-    values = [0.0] * 14
+    values = [0.0] * 15
     values[P_HALF], values[P_ONE], values[P_TWO] = 0.5, 1.0, 2.0
     if camera is None:
         return np.array(values, dtype=dtype)
     values[P_FX], values[P_FY], values[P_CX], values[P_CY] = (
         camera.fx, camera.fy, camera.cx, camera.cy,
     )  # fmt: skip
-    values[P_LOWPASS], values[P_NEAR] = LOWPASS, NEAR_PLANE
+    values[P_LOWPASS], values[P_NEAR], values[P_RIDGE] = LOWPASS, NEAR_PLANE, SLOPE_RIDGE
     values[P_CENTRE_X], values[P_CENTRE_Y] = (camera.width - 1) / 2, (camera.height - 1) / 2
     values[P_GUARD_X] = FRUSTUM_MARGIN * camera.width / 2
     values[P_GUARD_Y] = FRUSTUM_MARGIN * camera.height / 2
@@ -106,6 +109,32 @@ def _view(x, y, z, viewmat, params, m, t2, k):
                 k[r, j] += t2[r, c] * m[c, j]
 
 
+@numba.njit(cache=True)
+def _depth_row(m, viewmat):
+    """``w = Mᵀ Rᵀ e_z``, the camera z row of ``R M``."""
+    w0 = viewmat[2, 0] * m[0, 0] + viewmat[2, 1] * m[1, 0] + viewmat[2, 2] * m[2, 0]
+    w1 = viewmat[2, 0] * m[0, 1] + viewmat[2, 1] * m[1, 1] + viewmat[2, 2] * m[2, 1]
+    w2 = viewmat[2, 0] * m[0, 2] + viewmat[2, 1] * m[1, 2] + viewmat[2, 2] * m[2, 2]
+    return w0, w1, w2
+
+
+@numba.njit(cache=True)
+def _depth_slope(k, m, viewmat, params):
+    """The depth slope ``s = Σ_s⁻¹ q`` (see the module docstring) and the ridge's share
+    ``ε``, the inverse ``(a, b, c)`` of ``Σ_s`` and ``q``, which the backward needs."""
+    w0, w1, w2 = _depth_row(m, viewmat)
+    q0 = k[0, 0] * w0 + k[0, 1] * w1 + k[0, 2] * w2
+    q1 = k[1, 0] * w0 + k[1, 1] * w1 + k[1, 2] * w2
+    sxx = k[0, 0] ** 2 + k[0, 1] ** 2 + k[0, 2] ** 2
+    sxy = k[0, 0] * k[1, 0] + k[0, 1] * k[1, 1] + k[0, 2] * k[1, 2]
+    syy = k[1, 0] ** 2 + k[1, 1] ** 2 + k[1, 2] ** 2
+    ridge = params[P_RIDGE] * (sxx + syy)
+    sxx, syy = sxx + ridge, syy + ridge
+    det = sxx * syy - sxy * sxy
+    a, b, c = syy / det, -sxy / det, sxx / det
+    return a * q0 + b * q1, b * q0 + c * q1, a, b, c, q0, q1
+
+
 @numba.njit(parallel=True, cache=True)
 def shape_matrices(log_scales, quats, params, n_chunks, out):
     """``out[i]`` = R_q(q̂_i)·diag(e^{s_i}) for every Gaussian (a fixed map's :func:`_shape`)."""
@@ -121,7 +150,7 @@ def shape_matrices(log_scales, quats, params, n_chunks, out):
 @numba.njit(parallel=True, cache=True)
 def project_fwd(
     means, log_scales, quats, opacity_logits, viewmat, params, width, height, shapes,
-    use_shapes, n_chunks, out_means2d, out_conics, out_depths, out_visible,
+    use_shapes, n_chunks, out_means2d, out_conics, out_depths, out_slopes, out_visible,
 ):  # fmt: skip
     """Project all Gaussians; ``out_visible`` applies near, guard-band and screen-bounds culling.
 
@@ -155,6 +184,7 @@ def project_fwd(
                 det = sxx * syy - sxy * sxy
                 a, b, c = syy / det, -sxy / det, sxx / det
                 out_conics[i, 0], out_conics[i, 1], out_conics[i, 2] = a, b, c
+                out_slopes[i, 0], out_slopes[i, 1] = _depth_slope(k, shape, viewmat, params)[:2]
                 opacity = one / (one + math.exp(-opacity_logits[i]))
                 x0, x1, y0, y1 = pixel_rect(u, v, a, b, c, opacity, width, height)
                 out_visible[i] = x0 <= x1 and y0 <= y1
@@ -163,8 +193,8 @@ def project_fwd(
 @numba.njit(parallel=True, cache=True)
 def project_bwd(
     means, log_scales, quats, viewmat, params, ids, conics,
-    grad_means2d, grad_conics, grad_depths, want_gaussians, shapes, use_shapes, n_chunks,
-    out_means, out_log_scales, out_quats, out_pose,
+    grad_means2d, grad_conics, grad_depths, grad_slopes, want_gaussians, shapes, use_shapes,
+    n_chunks, out_means, out_log_scales, out_quats, out_pose,
 ):  # fmt: skip
     """VJP of :func:`project_fwd` for the visible Gaussians ``ids``.
 
@@ -200,10 +230,26 @@ def project_bwd(
                 g2[0, 1] = -(pg00 * b + pg01 * c)
                 g2[1, 0] = -(pg10 * a + pg11 * b)
                 g2[1, 1] = -(pg10 * b + pg11 * c)
-                # Σ₂ = K Kᵀ + low-pass, K = T₂ M, T₂ = J R.
+                # Slope s = Σ_s⁻¹ q: ∂L/∂q = Σ_s⁻¹ ∂L/∂s, ∂L/∂Σ_s = −sym(∂L/∂q sᵀ), and
+                # Σ_s = K Kᵀ + ε tr(K Kᵀ) I adds it, plus ε times its trace on the diagonal.
+                s0, s1, sa, sb, sc, q0, q1 = _depth_slope(k, m, viewmat, params)
+                gs0, gs1 = grad_slopes[i, 0], grad_slopes[i, 1]
+                gq0, gq1 = sa * gs0 + sb * gs1, sb * gs0 + sc * gs1
+                h00, h11 = -gq0 * s0, -gq1 * s1
+                h01 = -half * (gq0 * s1 + gq1 * s0)
+                spread = params[P_RIDGE] * (h00 + h11)
+                g2[0, 0] += h00 + spread
+                g2[0, 1] += h01
+                g2[1, 0] += h01
+                g2[1, 1] += h11 + spread
+                # Σ₂, Σ_s from K Kᵀ and q = K w, K = T₂ M, T₂ = J R.
+                w, gq = _depth_row(m, viewmat), (gq0, gq1)
                 for r in range(2):
                     for j in range(3):
-                        dk[r, j] = two * (g2[r, 0] * k[0, j] + g2[r, 1] * k[1, j])
+                        dk[r, j] = two * (g2[r, 0] * k[0, j] + g2[r, 1] * k[1, j]) + gq[r] * w[j]
+                # ∂L/∂w, then w = Mᵀ R₂ᵀ (R₂ the camera rotation's z row)
+                gw = (gq0 * k[0, 0] + gq1 * k[1, 0], gq0 * k[0, 1] + gq1 * k[1, 1],
+                      gq0 * k[0, 2] + gq1 * k[1, 2])  # fmt: skip
                 for r in range(2):
                     for c_ in range(3):
                         dt2[r, c_] = zero
@@ -211,7 +257,8 @@ def project_bwd(
                             dt2[r, c_] += dk[r, j] * m[c_, j]
                 for c_ in range(3):
                     for j in range(3):
-                        dm[c_, j] = t2[0, c_] * dk[0, j] + t2[1, c_] * dk[1, j]
+                        dm[c_, j] = (t2[0, c_] * dk[0, j] + t2[1, c_] * dk[1, j]
+                                     + viewmat[2, c_] * gw[j])  # fmt: skip
                 z2 = z * z
                 j00, j02 = fx / z, -fx * x / z2
                 j11, j12 = fy / z, -fy * y / z2
@@ -229,7 +276,8 @@ def project_bwd(
                 for c_ in range(3):
                     contrib[i, c_] = j00 * dt2[0, c_] + dx * mean[c_]
                     contrib[i, 3 + c_] = j11 * dt2[1, c_] + dy * mean[c_]
-                    contrib[i, 6 + c_] = j02 * dt2[0, c_] + j12 * dt2[1, c_] + dz * mean[c_]
+                    contrib[i, 6 + c_] = (j02 * dt2[0, c_] + j12 * dt2[1, c_] + dz * mean[c_]
+                                          + m[c_, 0] * gw[0] + m[c_, 1] * gw[1] + m[c_, 2] * gw[2])
                 contrib[i, 9], contrib[i, 10], contrib[i, 11] = dx, dy, dz
                 if not want_gaussians:
                     continue

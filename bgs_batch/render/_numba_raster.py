@@ -1,14 +1,16 @@
 """Numba kernels of the tile rasterizer (forward, backward, per-Gaussian reduction).
 
 Layout: ``feats[M, 4]`` holds RGB and the camera depth of each Gaussian, so colour and depth are
-composited by the same loop. Work is split over screen tiles of ``TILE_SIZE`` pixels; within a
-tile the Gaussians (depth sorted) form the outer loop. A tile's lanes are ordered by column
-block (``LANE_BLOCK`` columns, one SIMD vector), then row, then column (:func:`lane_index`), so
-the rows of a Gaussian's opacity-aware bounding box within one block are one contiguous span.
-For each block the box meets, both passes run one fused, branch-free loop over that span that
-LLVM vectorises (:func:`blend_span`, :func:`unblend_span`); the backward walks each tile back
-to front and writes one gradient slot per (tile, Gaussian) intersection; :func:`reduce_slots`
-sums the slots of each Gaussian in a fixed order, so results never depend on the thread count.
+composited by the same loop; ``slopes[M, 2]`` tilt each Gaussian's depth into a plane across the
+screen, so the depth feature at a pixel is ``d + s·(p − μ₂)`` (:func:`lane_features`). Work is
+split over screen tiles of ``TILE_SIZE`` pixels; within a tile the Gaussians (depth sorted) form
+the outer loop. A tile's lanes are ordered by column block (``LANE_BLOCK`` columns, one SIMD
+vector), then row, then column (:func:`lane_index`), so the rows of a Gaussian's opacity-aware
+bounding box within one block are one contiguous span. For each block the box meets, both passes
+run one fused, branch-free loop over that span that LLVM vectorises (:func:`blend_span`,
+:func:`unblend_span`); the backward walks each tile back to front and writes one gradient slot
+per (tile, Gaussian) intersection; :func:`reduce_slots` sums the slots of each Gaussian in a
+fixed order, so results never depend on the thread count.
 
 What keeps the fused loops vectorised (each was measured to stop it):
 - every per-lane field of a tile lives in one flat array at constant offsets
@@ -38,8 +40,9 @@ from .constants import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE_SIZE
 N_FEAT = 4
 """Composited features per Gaussian: R, G, B, depth (the backward spells the 4 out)."""
 
-N_SLOT = 11
-"""Gradient slot entries: mean x, y; conic a, b, c; opacity; 4 features; variance ``v``."""
+N_SLOT = 13
+"""Gradient slot entries: mean x, y; conic a, b, c; opacity; 4 features; variance ``v``;
+depth slope x, y."""
 
 TILE_PIXELS = TILE_SIZE * TILE_SIZE
 LANE_BLOCK = 8
@@ -78,7 +81,7 @@ contraction and reciprocal rewrites depend on where a copy was inlined, so a pro
 just compiled the backward ran other code than the cache it wrote (tests/test_kernel_cache.py).
 The hot loops vectorise as before: measured within noise of the contracted ones."""
 
-S_MEAN, S_CONIC, S_OPACITY, S_FEAT, S_VAR = 0, 2, 5, 6, 10
+S_MEAN, S_CONIC, S_OPACITY, S_FEAT, S_VAR, S_SLOPE = 0, 2, 5, 6, 10, 11
 """Offsets of the parameter groups in a gradient slot."""
 
 
@@ -321,6 +324,7 @@ A_MEAN_X, A_MEAN_Y, A_CONIC_A, A_CONIC_B, A_CONIC_C, A_OPACITY = (
     slot_lanes(S_MEAN + e) for e in range(6)
 )
 A_FEAT, A_VAR = slot_lanes(S_FEAT), slot_lanes(S_VAR)
+A_SLOPE_X, A_SLOPE_Y = slot_lanes(S_SLOPE), slot_lanes(S_SLOPE + 1)
 
 
 @numba.njit(cache=True, fastmath=CALLEE_FASTMATH)
@@ -334,11 +338,19 @@ def gaussian_weight(dx, dy, a, b, c, consts):
     return exp_neg(sigma, consts)
 
 
+@numba.njit(cache=True, fastmath=CALLEE_FASTMATH, inline="always")
+def lane_features(fs, sx, sy, dx, dy):
+    """A Gaussian's features at a lane ``(dx, dy)`` from its centre: the colour, and the depth
+    of its plane ``d + sx·dx + sy·dy`` (the depth where the pixel's ray meets it)."""
+    return (fs[0], fs[1], fs[2], fs[3] + sx * dx + sy * dy)
+
+
 @numba.njit(cache=True, fastmath=CALLEE_FASTMATH, error_model="numpy")
-def blend_span(buf, done, last, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, consts):
+def blend_span(buf, done, last, p0, p1, kk, o, v, mx, my, a, b, c, fs, sx, sy, x0, x1, consts):
     """Forward, one intersection: blend Gaussian ``kk`` (opacity ``o``, variance ``v``, mean,
-    conic, features ``fs``, box columns ``x0..x1``) into lanes ``p0:p1`` of a tile, front to
-    back; returns how many lanes stopped (their transmittance would fall below ``T_MIN``).
+    conic, features ``fs``, depth slopes ``sx, sy``, box columns ``x0..x1``) into lanes
+    ``p0:p1`` of a tile, front to back; returns how many lanes stopped (their transmittance
+    would fall below ``T_MIN``).
 
     One fused branch-free loop (masks as selects) that LLVM vectorises: lanes outside the box
     contribute exact zeros. A function of its own for the error model: a parallel kernel's
@@ -351,7 +363,9 @@ def blend_span(buf, done, last, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, c
         x = buf[j]
         # every load unconditional, every choice a select of computed values
         was_done, last_j, t_old = done[j], last[j], buf[FT + j]
-        e = gaussian_weight(x - mx, buf[LANE_Y + j] - my, a, b, c, consts)
+        dx, dy = x - mx, buf[LANE_Y + j] - my
+        e = gaussian_weight(dx, dy, a, b, c, consts)
+        fl = lane_features(fs, sx, sy, dx, dy)
         alpha = min(alpha_max, o * e)
         hit = (x >= x0) & (x <= x1) & (was_done == 0) & (alpha >= alpha_min)
         alpha = alpha if hit else zero
@@ -366,7 +380,7 @@ def blend_span(buf, done, last, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, c
         # it, so adding f once (exactly) sets it
         first = one if (w > zero) & (last_j < 0) else zero
         for ch in range(N_FEAT):
-            f, at = fs[ch], CH * np.uint64(ch) + j
+            f, at = fl[ch], CH * np.uint64(ch) + j
             ref = buf[FREF + at] + f * first
             buf[FREF + at] = ref
             buf[FACC + at] += f * w
@@ -384,7 +398,7 @@ def blend_span(buf, done, last, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, c
 
 @numba.njit(parallel=True, cache=True, fastmath=FASTMATH)
 def raster_fwd(
-    means2d, conics, opacities, feats, variances, rects, tile_start, isect_gauss,
+    means2d, conics, opacities, feats, slopes, variances, rects, tile_start, isect_gauss,
     xs, ys, consts, n_chunks, out_feat, out_trans, out_var, out_dvdf, out_last,
 ):  # fmt: skip
     """Front-to-back compositing of features, alpha and opacity-induced variances.
@@ -422,6 +436,7 @@ def raster_fwd(
                 mx, my = means2d[g, 0], means2d[g, 1]
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 fs = (feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3])
+                sx, sy = slopes[g, 0], slopes[g, 1]
                 x0, x1 = xs[rects[g, 0]], xs[rects[g, 1]]
                 b0, b1, r0, r1 = box_blocks(rects, g, px0, py0, py1, LANE_BLOCK)
                 kk = np.int32(k)
@@ -429,7 +444,7 @@ def raster_fwd(
                     base = block_base(block)
                     n_active -= blend_span(
                         buf, done, last, base + r0, base + r1, kk, o, v, mx, my, a, b, c, fs,
-                        x0, x1, consts,
+                        sx, sy, x0, x1, consts,
                     )  # fmt: skip
             for py in range(py0, py1):
                 for px in range(px0, px1):
@@ -481,7 +496,7 @@ def unblend_lane(buf, last, j, kk, mx, my, a, b, c, o, x0, x1, y0, y1, consts):
 
 @numba.njit(cache=True, fastmath=CALLEE_FASTMATH)
 def variance_residual(buf, j, fs, zero):
-    """``q = Σ_ch ∂L/∂V (f − F)²`` at lane j for the features ``fs``."""
+    """``q = Σ_ch ∂L/∂V (f − F)²`` at lane j for the lane's features ``fs``."""
     q = zero
     for ch in range(N_FEAT):
         at = CH * np.uint64(ch) + j
@@ -491,7 +506,7 @@ def variance_residual(buf, j, fs, zero):
 
 
 @numba.njit(cache=True, fastmath=CALLEE_FASTMATH, error_model="numpy")
-def unblend_span(buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, y0, y1,
+def unblend_span(buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, sx, sy, x0, x1, y0, y1,
                  r_weight, variance_only, consts):  # fmt: skip
     """Backward, one intersection and lane block (see :func:`blend_span`): undo Gaussian
     ``kk``'s blend in lanes ``p0:p1`` (whole steps of ``STEP_LANES``, box ``x0..x1`` ×
@@ -509,10 +524,11 @@ def unblend_span(buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, 
         for r0 in range(p0, p1, step):
             for lane in range(step):
                 j = r0 + lane
-                square = unblend_lane(
+                dx, dy, _, _, _, _, square = unblend_lane(
                     buf, last, j, kk, mx, my, a, b, c, o, x0, x1, y0, y1, consts
-                )[6]  # fmt: skip
-                acc[A_VAR + lane] += square * variance_residual(buf, j, fs, zero)
+                )  # fmt: skip
+                fl = lane_features(fs, sx, sy, dx, dy)
+                acc[A_VAR + lane] += square * variance_residual(buf, j, fl, zero)
         return
     for r0 in range(p0, p1, step):
         for lane in range(step):
@@ -522,15 +538,21 @@ def unblend_span(buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, 
             )
             w = alpha * t
             mom = v * square
-            q = variance_residual(buf, j, fs, zero)
+            fl = lane_features(fs, sx, sy, dx, dy)
+            q = variance_residual(buf, j, fl, zero)
             g_dot_f = zero  # ⟨∂L/∂F, f_i⟩
+            g_lane = zero  # ∂L/∂f of the last feature, the depth at this lane
             for ch in range(N_FEAT):
-                f, at = fs[ch], CH * np.uint64(ch) + j
+                f, at = fl[ch], CH * np.uint64(ch) + j
                 g_f = buf[BGFIN + at]
                 g_dot_f += g_f * f
                 d = f - buf[BFIN + at]
-                acc[A_FEAT + step * np.uint64(ch) + lane] += w * g_f + two * buf[BGV + at] * mom * d
+                g_lane = w * g_f + two * buf[BGV + at] * mom * d
+                acc[A_FEAT + step * np.uint64(ch) + lane] += g_lane
             acc[A_VAR + lane] += square * q
+            # the depth plane d + s·(p − μ₂): ∂/∂s = p − μ₂, ∂/∂μ₂ = −s
+            acc[A_SLOPE_X + lane] += g_lane * dx
+            acc[A_SLOPE_Y + lane] += g_lane * dy
             # ∂F/∂α_i = f_i T_i − (Σ_{j>i} f_j w_j)/(1 − α_i), dotted with ∂L/∂F.
             d_alpha = (
                 t * g_dot_f
@@ -542,8 +564,8 @@ def unblend_span(buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, 
             buf[BRSUM + j] += q * mom
             d_sigma = -d_alpha * o * e
             acc[A_OPACITY + lane] += d_alpha * e
-            acc[A_MEAN_X + lane] += -d_sigma * (a * dx + b * dy)
-            acc[A_MEAN_Y + lane] += -d_sigma * (b * dx + c * dy)
+            acc[A_MEAN_X + lane] += -d_sigma * (a * dx + b * dy) - sx * g_lane
+            acc[A_MEAN_Y + lane] += -d_sigma * (b * dx + c * dy) - sy * g_lane
             acc[A_CONIC_A + lane] += d_sigma * half * dx * dx
             acc[A_CONIC_B + lane] += d_sigma * dx * dy
             acc[A_CONIC_C + lane] += d_sigma * half * dy * dy
@@ -551,15 +573,16 @@ def unblend_span(buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, x0, x1, 
 
 @numba.njit(parallel=True, cache=True, fastmath=FASTMATH)
 def raster_bwd(
-    means2d, conics, opacities, feats, variances, rects, tile_start, isect_gauss,
+    means2d, conics, opacities, feats, slopes, variances, rects, tile_start, isect_gauss,
     xs, ys, consts, n_chunks, full_grad, want_appearance, variance_only, out_feat, out_trans,
     out_dvdf, out_last, grad_feat, grad_alpha, grad_var, slots,
 ):  # fmt: skip
     """Back-to-front vector-Jacobian product of :func:`raster_fwd`, one slot per intersection.
 
     ``slots[k]`` receives the gradient of intersection ``k`` with respect to
-    (mean x, mean y, conic a, b, c, opacity, features ×4, v). ``full_grad`` adds the dependence
-    of ``T_i²`` in the variances on the alphas in front of Gaussian i (dropped by the authors).
+    (mean x, mean y, conic a, b, c, opacity, features ×4, v, depth slope x, y). ``full_grad``
+    adds the dependence of ``T_i²`` in the variances on the alphas in front of Gaussian i
+    (dropped by the authors).
     Without ``want_appearance`` (pose-only tracking) the colour, opacity and ``v`` entries are
     left at zero: only the geometry entries and the depth feature reach the pose. With
     ``variance_only`` (the end-of-run refinement: only ``v`` learns) every entry but ``v`` is
@@ -609,6 +632,7 @@ def raster_bwd(
                 a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
                 o, v = opacities[g], variances[g]
                 fs = (feats[g, 0], feats[g, 1], feats[g, 2], feats[g, 3])
+                sx, sy = slopes[g, 0], slopes[g, 1]
                 x0, x1 = xs[rects[g, 0]], xs[rects[g, 1]]
                 y0, y1 = ys[rects[g, 2]], ys[rects[g, 3]]
                 b0, b1, r0, r1 = box_blocks(rects, g, px0, py0, py1, STEP_LANES)
@@ -618,13 +642,14 @@ def raster_bwd(
                     base = block_base(block)
                     unblend_span(
                         buf, last, acc, base + r0, base + r1, kk, o, v, mx, my, a, b, c, fs,
-                        x0, x1, y0, y1, r_weight, variance_only, consts,
+                        sx, sy, x0, x1, y0, y1, r_weight, variance_only, consts,
                     )  # fmt: skip
                 for e in range(N_SLOT):
                     if variance_only:
                         keep = e == S_VAR
                     else:  # pose-only: the geometry entries and the depth feature
-                        keep = want_appearance or e < S_OPACITY or e == S_FEAT + N_FEAT - 1
+                        keep = (want_appearance or e < S_OPACITY or e == S_FEAT + N_FEAT - 1
+                                or e >= S_SLOPE)  # fmt: skip
                     slots[k, e] = lane_total(acc, e) if keep else zero
 
 

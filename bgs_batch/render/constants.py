@@ -16,6 +16,11 @@ T_MIN = 1e-4
 LOWPASS = 0.3
 """EWA low-pass filter: added to the diagonal of every screen-space covariance (pixels²)."""
 
+SLOPE_RIDGE = 1e-3
+"""Depth slopes use the screen covariance without the low-pass (which would flatten the planes
+of Gaussians a pixel or so wide) plus this share of its trace on the diagonal, which bounds its
+condition number for a disc seen edge on."""
+
 NEAR_PLANE = 0.01
 """Gaussians whose centre is closer than this camera-space depth (metres) are culled."""
 

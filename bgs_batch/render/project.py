@@ -27,6 +27,10 @@ class Projected(NamedTuple):
     """[M,3] inverse low-passed screen covariance ``(a, b, c)``."""
     depths: torch.Tensor
     """[M] camera-space depths ``z``."""
+    depth_slopes: torch.Tensor
+    """[M,2] screen gradients of each Gaussian's depth: the depth of its plane at pixel ``p`` is
+    ``z + s·(p − means2d)``, where the pixel's ray meets it (unlike ``z``, unbiased for a
+    surface seen at a slant)."""
     ids: torch.Tensor
     """[M] int64 indices of the visible Gaussians in the input arrays (ascending)."""
 
@@ -69,11 +73,9 @@ def project(
             the same result without recomputing them, and no gradient for those two.
     """
     if backend == "torch":
-        means2d, conics, depths, visible = project_ref(
-            means, log_scales, quats, opacity_logits, viewmat, camera
-        )
+        *out, visible = project_ref(means, log_scales, quats, opacity_logits, viewmat, camera)
         ids = visible.nonzero().squeeze(-1)
-        return Projected(means2d[ids], conics[ids], depths[ids], ids)
+        return Projected(*(t[ids] for t in out), ids)
     if backend != "numba":
         raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
     check_float_inputs(means, log_scales, quats, opacity_logits, viewmat)
@@ -97,14 +99,17 @@ class _ProjectNumba(torch.autograd.Function):
         shape_np = to_numpy(shapes) if given else np.empty((0, 3, 3), dtype)
         means2d, conics = scratch("means2d", (n, 2), dtype), scratch("conics", (n, 3), dtype)
         depths, visible = scratch("depths", (n,), dtype), scratch("visible", (n,), np.bool_)
+        slopes = scratch("slopes", (n, 2), dtype)
         npj.project_fwd(
             arrays[0], arrays[1], arrays[2], to_numpy(opacity_logits), arrays[3], params,
             camera.width, camera.height, shape_np, given, numba.get_num_threads(),
-            means2d, conics, depths, visible,
+            means2d, conics, depths, slopes, visible,
         )  # fmt: skip
         ids = np.flatnonzero(visible)
         # np.take: the same rows as a[ids], several times faster for row arrays
-        out = [torch.from_numpy(np.take(a, ids, axis=0)) for a in (means2d, conics, depths)]
+        out = [
+            torch.from_numpy(np.take(a, ids, axis=0)) for a in (means2d, conics, depths, slopes)
+        ]
         ctx.arrays, ctx.params, ctx.ids, ctx.conics = arrays, params, ids, out[1].numpy()
         ctx.shapes = shape_np
         ids = torch.from_numpy(ids)
@@ -112,7 +117,7 @@ class _ProjectNumba(torch.autograd.Function):
         return *out, ids
 
     @staticmethod
-    def backward(ctx, g_means2d, g_conics, g_depths, _g_ids):
+    def backward(ctx, g_means2d, g_conics, g_depths, g_slopes, _g_ids):
         means, log_scales, quats, viewmat = ctx.arrays
         given = ctx.shapes.shape[0] > 0
         want = ctx.needs_input_grad[0] or (not given and any(ctx.needs_input_grad[1:3]))
@@ -121,7 +126,7 @@ class _ProjectNumba(torch.autograd.Function):
         pose = np.empty(npj.N_POSE, means.dtype)
         npj.project_bwd(
             means, log_scales, quats, viewmat, ctx.params, ctx.ids, ctx.conics,
-            *map(to_numpy, (g_means2d, g_conics, g_depths)), want, ctx.shapes,
+            *map(to_numpy, (g_means2d, g_conics, g_depths, g_slopes)), want, ctx.shapes,
             given and not want, numba.get_num_threads(), *out, pose,
         )  # fmt: skip
         g_view = torch.zeros(4, 4, dtype=g_means2d.dtype)

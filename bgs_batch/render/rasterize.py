@@ -28,7 +28,7 @@ class RasterOutput(NamedTuple):
     color: torch.Tensor
     """``C = Σ c_i α_i T_i``."""
     depth: torch.Tensor
-    """Unnormalised ``D = Σ d_i α_i T_i`` (camera z)."""
+    """Unnormalised ``D = Σ d_i α_i T_i`` (camera z, ``d_i`` at the pixel: :func:`rasterize`)."""
     alpha: torch.Tensor
     """``A = Σ α_i T_i = 1 − T_final``."""
     var_color: torch.Tensor
@@ -65,6 +65,7 @@ def rasterize(
     height: int,
     *,
     full_grad: bool = True,
+    depth_slopes: torch.Tensor | None = None,
     backend: str = DEFAULT_BACKEND,
 ) -> RasterOutput:
     """Composite M projected Gaussians front to back into a ``height`` × ``width`` image.
@@ -78,9 +79,14 @@ def rasterize(
         variances: [M] opacity variances ``v_i = softplus(r_i)`` (docs/method.md §1).
         full_grad: differentiate ``T_i²`` in the variances too; ``False`` is the authors'
             gradient (``T_i²`` constant, ``C`` and ``D`` still differentiated).
+        depth_slopes: optional [M,2] screen gradients ``s_i`` of each Gaussian's depth: at pixel
+            ``p`` its depth feature is ``d_i + s_i·(p − μ_i)``, the depth of its plane
+            (:attr:`.project.Projected.depth_slopes`); None: ``d_i`` everywhere.
         backend: ``"numba"`` or ``"torch"``.
     """
-    args = (means2d, conics, depths, opacities, colors, variances)
+    if depth_slopes is None:
+        depth_slopes = means2d.new_zeros(means2d.shape)
+    args = (means2d, conics, depths, opacities, colors, variances, depth_slopes)
     if backend == "torch":
         return RasterOutput(*rasterize_ref(*args, width, height, full_grad))
     if backend != "numba":
@@ -134,9 +140,13 @@ class _RasterizeNumba(torch.autograd.Function):
     """Autograd wrapper of the numba tile kernels (:mod:`._numba_raster`)."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, depths, opacities, colors, variances, width, height, full):
+    def forward(
+        ctx, means2d, conics, depths, opacities, colors, variances, slopes, width, height, full
+    ):
         dtype = means2d.dtype
-        mean_np, conic_np, opac_np, var_np = map(to_numpy, (means2d, conics, opacities, variances))
+        mean_np, conic_np, opac_np, var_np, slope_np = map(
+            to_numpy, (means2d, conics, opacities, variances, slopes)
+        )
         a, b, c = conic_np.T
         if not (np.all(a > 0) and np.all(a * c > b * b)):
             raise ValueError("conics must be positive definite (a > 0, a·c > b²)")
@@ -158,14 +168,14 @@ class _RasterizeNumba(torch.autograd.Function):
         out_trans = torch.empty(height, width, dtype=dtype)
         out_last = torch.empty(height, width, dtype=torch.int64)
         nr.raster_fwd(
-            mean_np, conic_np, opac_np, feats, var_np, rects, tile_start, isect_gauss,
+            mean_np, conic_np, opac_np, feats, slope_np, var_np, rects, tile_start, isect_gauss,
             xs, ys, consts, numba.get_num_threads(),
             *(t.numpy() for t in (out_feat, out_trans, out_var, out_dvdf, out_last)),
         )  # fmt: skip
         ctx.full_grad = full
         ctx.kernel_args = (
-            mean_np, conic_np, opac_np, feats, var_np, rects, tile_start, isect_gauss, xs, ys,
-            consts, numba.get_num_threads(),
+            mean_np, conic_np, opac_np, feats, slope_np, var_np, rects, tile_start, isect_gauss,
+            xs, ys, consts, numba.get_num_threads(),
         )  # fmt: skip
         ctx.reduce_args = (isect_slot, gauss_start)
         ctx.saved = (out_feat.numpy(), out_trans.numpy(), out_dvdf.numpy(), out_last.numpy())
@@ -181,7 +191,7 @@ class _RasterizeNumba(torch.autograd.Function):
             buf[..., :3] = to_numpy(g_rgb)
             buf[..., 3:] = to_numpy(g_d)
             grads_in.append(buf)
-        slots = scratch("slots", (ctx.kernel_args[7].shape[0], nr.N_SLOT), feats.dtype)
+        slots = scratch("slots", (ctx.kernel_args[8].shape[0], nr.N_SLOT), feats.dtype)
         want_appearance = any(ctx.needs_input_grad[3:6])  # else pose-only tracking
         variance_only = not any(ctx.needs_input_grad[:5])  # the uncertainty refinement
         nr.raster_bwd(
@@ -199,6 +209,7 @@ class _RasterizeNumba(torch.autograd.Function):
             g[:, nr.S_OPACITY],
             g[:, nr.S_FEAT : nr.S_FEAT + 3],
             g[:, nr.S_VAR],
+            g[:, nr.S_SLOPE : nr.S_SLOPE + 2],
             None,
             None,
             None,

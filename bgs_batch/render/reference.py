@@ -9,7 +9,15 @@ Eq. 3, 12 and 13.
 import torch
 
 from .camera import Camera
-from .constants import ALPHA_MAX, ALPHA_MIN, FRUSTUM_MARGIN, LOWPASS, NEAR_PLANE, T_MIN
+from .constants import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    FRUSTUM_MARGIN,
+    LOWPASS,
+    NEAR_PLANE,
+    SLOPE_RIDGE,
+    T_MIN,
+)
 
 PIXEL_CHUNK = 4096
 """Pixels composited at once by the dense reference (bounds its memory use)."""
@@ -35,11 +43,15 @@ def project_ref(
     opacity_logits: torch.Tensor,
     viewmat: torch.Tensor,
     camera: Camera,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """EWA projection: ``(means2d [N,2], conics [N,3], depths [N], visible [N])`` of N Gaussians.
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """EWA projection: ``(means2d [N,2], conics [N,3], depths [N], depth_slopes [N,2],
+    visible [N])`` of N Gaussians.
 
     ``conics = (a, b, c)`` is the inverse of the low-passed screen covariance
-    ``J W Σ Wᵀ Jᵀ + 0.3·I``, so ``σ = ½(a·dx² + c·dy²) + b·dx·dy``. ``visible`` applies the
+    ``J W Σ Wᵀ Jᵀ + 0.3·I``, so ``σ = ½(a·dx² + c·dy²) + b·dx·dy``. ``depth_slopes`` =
+    ``(Σ₂ + ε·tr Σ₂·I)⁻¹ J W Σ Wᵀ e_z`` with the unfiltered ``Σ₂ = J W Σ Wᵀ Jᵀ``: the screen
+    gradient of the Gaussian's plane, the mean depth given the pixel (ε = ``SLOPE_RIDGE``
+    keeps it finite for a disc seen edge on). ``visible`` applies the
     near-plane, guard-band and opacity-aware screen-bounds culling of the fast backend.
     """
     rot_w, trans_w = viewmat[:3, :3], viewmat[:3, 3]
@@ -56,13 +68,17 @@ def project_ref(
     sxx, sxy, syy = cov2d[:, 0, 0] + LOWPASS, cov2d[:, 0, 1], cov2d[:, 1, 1] + LOWPASS
     det = sxx * syy - sxy * sxy
     conics = torch.stack([syy / det, -sxy / det, sxx / det], dim=-1)
+    depth_cov = jac @ cov_cam[:, :, 2:]  # Cov(p, z) = J Σ_cam e_z
+    ridge = SLOPE_RIDGE * (cov2d[:, 0, 0] + cov2d[:, 1, 1])
+    eye = torch.eye(2, dtype=cov2d.dtype)
+    slopes = torch.linalg.solve(cov2d + ridge[:, None, None] * eye, depth_cov).squeeze(-1)
     means2d = torch.stack([camera.fx * x / z + camera.cx, camera.fy * y / z + camera.cy], -1)
     visible = (
         (z > NEAR_PLANE)
         & in_guard_band(means2d, camera)
         & rect_in_image(means2d, conics, torch.sigmoid(opacity_logits), camera)
     ).detach()
-    return means2d, conics, z, visible
+    return means2d, conics, z, slopes, visible
 
 
 def in_guard_band(means2d: torch.Tensor, camera: Camera) -> torch.Tensor:
@@ -94,13 +110,15 @@ def rasterize_ref(
     opacities: torch.Tensor,
     colors: torch.Tensor,
     variances: torch.Tensor,
+    depth_slopes: torch.Tensor,
     width: int,
     height: int,
     full_grad: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Dense compositing into ``(color, depth, alpha, V_C, V_D)``, each [H,W,3] or [H,W,1].
 
-    ``C = Σ c_i α_i T_i``, ``D = Σ d_i α_i T_i`` (unnormalised), ``A = Σ α_i T_i`` and, with
+    ``C = Σ c_i α_i T_i``, ``D = Σ d_i α_i T_i`` (unnormalised; ``d_i = depths_i + s_i·(p − μ_i)``
+    at pixel p with ``s_i`` = ``depth_slopes``), ``A = Σ α_i T_i`` and, with
     ``v_i`` = ``variances``, ``V_C = Σ (c_i − C)² T_i² v_i`` (paper Eq. 3, 12) and
     ``V_D = Σ (d_i − D)² T_i² v_i`` (Eq. 13). ``full_grad=False`` treats ``T_i²`` as a constant
     in the backward, as the authors' CUDA kernel does; ``C`` and ``D`` keep their gradient.
@@ -109,7 +127,7 @@ def rasterize_ref(
     mean = means2d[order]
     a, b, c = conics[order].unbind(-1)
     feats = torch.cat([colors, depths.unsqueeze(-1)], -1)[order]
-    opac, var = opacities[order], variances[order]
+    opac, var, slopes = opacities[order], variances[order], depth_slopes[order]
     ys, xs = torch.meshgrid(
         torch.arange(height, dtype=means2d.dtype),
         torch.arange(width, dtype=means2d.dtype),
@@ -117,7 +135,7 @@ def rasterize_ref(
     )
     pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
     chunks = [
-        _composite(pix[i : i + PIXEL_CHUNK], mean, a, b, c, opac, feats, var, full_grad)
+        _composite(pix[i : i + PIXEL_CHUNK], mean, a, b, c, opac, feats, slopes, var, full_grad)
         for i in range(0, pix.shape[0], PIXEL_CHUNK)
     ]
     out, alpha, out_var = (torch.cat(t, 0) for t in zip(*chunks, strict=True))
@@ -125,10 +143,12 @@ def rasterize_ref(
     return out[..., :3], out[..., 3:], alpha, out_var[..., :3], out_var[..., 3:]
 
 
-def _composite(pix, mean, a, b, c, opac, feats, var, full_grad):
+def _composite(pix, mean, a, b, c, opac, feats, slopes, var, full_grad):
     """Composite depth-sorted Gaussians at the pixel centres ``pix`` [P,2]."""
     dx = pix[:, :1] - mean[:, 0]
     dy = pix[:, 1:] - mean[:, 1]
+    depth = feats[:, 3] + slopes[:, 0] * dx + slopes[:, 1] * dy  # [P,N] the planes at the pixels
+    feats = torch.cat([feats[:, :3].expand(pix.shape[0], -1, -1), depth.unsqueeze(-1)], -1)
     sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
     alpha = torch.clamp(opac * torch.exp(-sigma), max=ALPHA_MAX)
     alpha = torch.where(alpha >= ALPHA_MIN, alpha, torch.zeros_like(alpha))
@@ -136,7 +156,7 @@ def _composite(pix, mean, a, b, c, opac, feats, var, full_grad):
     alpha = torch.where(trans_after >= T_MIN, alpha, torch.zeros_like(alpha))
     trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
     weight = alpha * trans
-    out = weight @ feats
+    out = (weight.unsqueeze(-1) * feats).sum(1)
     acc = weight.sum(1, keepdim=True)
     trans_sq = trans * trans if full_grad else (trans * trans).detach()
     u = torch.where(alpha > 0, trans_sq * var, torch.zeros_like(trans_sq))

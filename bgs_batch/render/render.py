@@ -66,5 +66,6 @@ def render(
         camera.width,
         camera.height,
         full_grad=full_grad,
+        depth_slopes=proj.depth_slopes,
         backend=backend,
     )

@@ -52,11 +52,15 @@ class GaussianMap:
         colors: np.ndarray,
         opacity: float,
         uncertainty_logit: float,
+        normals: np.ndarray | None = None,
+        flatness: float = 1.0,
     ) -> int:
         """Append Gaussians at `means` with `colors`; returns how many were added.
 
-        Scale: RMS distance to the 3 nearest Gaussians among old and new (3DGS's distCUDA2),
-        isotropic; rotation identity; opacity and uncertainty as given (docs/method.md §1, §5).
+        Scale: RMS distance to the 3 nearest Gaussians among old and new (3DGS's distCUDA2);
+        where a finite normal is given, the Gaussian is a disc across it (its scale along the
+        normal times `flatness`), else isotropic with identity rotation; opacity and
+        uncertainty as given (docs/method.md §1, §5).
         """
         if len(means) == 0:
             return 0
@@ -67,10 +71,19 @@ class GaussianMap:
         dist = np.atleast_2d(dist)[:, 1:] if k > 1 else np.full((len(means), 1), 0.01)
         scale = np.sqrt(np.maximum(np.mean(dist**2, axis=1), MIN_INITIAL_SCALE**2))
         n = len(means)
+        log_scales = np.repeat(np.log(scale)[:, None], 3, axis=1)
+        quats = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
+        if normals is not None:
+            disc = np.isfinite(normals).all(axis=1)
+            nz = np.where(normals[:, 2:] < 0, -normals, normals)[disc]  # a disc has no side
+            # the rotation that takes the local z axis to the normal: axis e_z × n, w = 1 + n_z
+            q = np.stack([1 + nz[:, 2], -nz[:, 1], nz[:, 0], np.zeros(len(nz))], axis=1)
+            quats[disc] = q / np.linalg.norm(q, axis=1, keepdims=True)
+            log_scales[disc, 2] += np.log(flatness)
         new = {
             "means": torch.from_numpy(np.asarray(means, np.float32)),
-            "log_scales": torch.from_numpy(np.log(scale).astype(np.float32))[:, None].repeat(1, 3),
-            "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
+            "log_scales": torch.from_numpy(log_scales.astype(np.float32)),
+            "quats": torch.from_numpy(quats.astype(np.float32)),
             "opacity_logits": torch.full((n,), _logit(opacity)),
             "colors": torch.from_numpy(np.asarray(colors, np.float32)),
             "uncertainty_logits": torch.full((n,), float(uncertainty_logit)),

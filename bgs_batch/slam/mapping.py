@@ -24,10 +24,10 @@ from bgs_batch.slam.loss_kernels import l1_nll_terms
 from bgs_batch.slam.losses import mapping_loss, predictive_variances
 from bgs_batch.slam.seeding import (
     backproject,
-    depth_push,
     far_from,
     keyframe_seed_pixels,
     submap_seed_pixels,
+    surface_normals,
 )
 from bgs_batch.slam.sensor_noise import SensorNoiseNet
 
@@ -80,10 +80,12 @@ class Mapper:
             pixels = keyframe_seed_pixels(out.alpha[..., 0].numpy(), out.depth[..., 0].numpy(),
                                           depth, s, rng)  # fmt: skip
         points = backproject(depth, pixels, intrinsics_of(keyframe.level), keyframe.c2w,
-                             depth_push(self.cfg))  # fmt: skip
+                             s.depth_push)  # fmt: skip
         keep = far_from(gmap.means.detach().numpy(), points, s.min_distance)
         colors = keyframe.level.rgb.reshape(-1, 3).numpy()[pixels[keep]]
-        return gmap.add(points[keep], colors, s.initial_opacity, self.cfg.uncertainty.initial_logit)
+        normals = surface_normals(depth, pixels[keep], intrinsics_of(keyframe.level), keyframe.c2w)
+        return gmap.add(points[keep], colors, s.initial_opacity, self.cfg.uncertainty.initial_logit,
+                        normals, s.flatness)  # fmt: skip
 
     def map(
         self,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from bgs_batch.config import Config, SeedingConfig
+from bgs_batch.config import SeedingConfig
 from bgs_batch.geometry import kd_tree
 
 CANNY_THRESHOLDS = (100, 200)
@@ -73,22 +73,30 @@ def backproject(
     return cam @ c2w[:3, :3].T + c2w[:3, 3]
 
 
-def depth_push(cfg: Config) -> float:
-    """How far behind the measured surface this camera's seeds sit, as a factor of their depth:
-    ``seeding.depth_push`` when either image has a rolling shutter (the run's readouts, known or
-    estimated), ``seeding.global_shutter_depth_push`` when both read out at once (docs/method.md
-    §5)."""
-    s = cfg.seeding
-    readouts = (cfg.rolling_shutter_readout, cfg.depth_rolling_shutter_readout)
-    rolling = any(readout or 0.0 for readout in readouts)
-    if rolling or s.global_shutter_depth_push is None:
-        return s.depth_push
-    return s.global_shutter_depth_push
-
-
 def far_from(existing: np.ndarray, candidates: np.ndarray, min_distance: float) -> np.ndarray:
     """Boolean mask of candidates with no existing point within `min_distance` (KD-tree)."""
     if len(existing) == 0 or len(candidates) == 0:
         return np.ones(len(candidates), bool)
     dist, _ = kd_tree(existing).query(candidates, k=1, distance_upper_bound=min_distance)
     return ~np.isfinite(dist)
+
+
+def surface_normals(depth: np.ndarray, pixels: np.ndarray, intrinsics: np.ndarray,
+                    c2w: np.ndarray) -> np.ndarray:  # fmt: skip
+    """World unit normals (M, 3) of the measured surface at flat pixel indices, from the depth
+    image's central differences; NaN where a neighbour has no depth or the image border cuts."""
+    h, w = depth.shape
+    fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
+    v, u = np.divmod(pixels, w)
+    inside = (u > 0) & (u < w - 1) & (v > 0) & (v < h - 1)
+    u, v = np.clip(u, 1, w - 2), np.clip(v, 1, h - 2)
+
+    def point(du: int, dv: int) -> np.ndarray:
+        z = depth[v + dv, u + du].astype(np.float64)
+        z = np.where(z > 0, z, np.nan)
+        return np.stack([(u + du - cx) / fx * z, (v + dv - cy) / fy * z, z], axis=1)
+
+    normal = np.cross(point(1, 0) - point(-1, 0), point(0, 1) - point(0, -1))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal[~inside] = np.nan
+    return normal @ c2w[:3, :3].T

@@ -42,12 +42,22 @@ def _requires_grad(tensors):
     return [t.detach().clone().requires_grad_() for t in tensors]
 
 
+def _random_slopes(n, seed, dtype=torch.float64):
+    """Depth slopes of up to 5 cm per pixel either way (a surface at a steep slant)."""
+    gen = torch.Generator().manual_seed(seed)
+    return (torch.rand(n, 2, generator=gen, dtype=torch.float64) * 0.1 - 0.05).to(dtype)
+
+
 def _compare_rasterize(inputs, dtype, *, full_grad=True, seed=0, width=WIDTH, height=HEIGHT):
-    """Assert numba(dtype) == reference(float64 copy of the same inputs), outputs and VJPs."""
+    """Assert numba(dtype) == reference(float64 copy of the same inputs), outputs and VJPs.
+
+    ``inputs``: rasterize's six tensors, or seven with the depth slopes last."""
     fast_in = _requires_grad(t.to(dtype) for t in inputs)
     ref_in = _requires_grad(t.to(dtype).double() for t in inputs)
-    fast = rasterize(*fast_in, width, height, full_grad=full_grad)
-    ref = rasterize(*ref_in, width, height, full_grad=full_grad, backend="torch")
+    fast = rasterize(*fast_in[:6], width, height, full_grad=full_grad,
+                     depth_slopes=fast_in[6] if len(inputs) > 6 else None)  # fmt: skip
+    ref = rasterize(*ref_in[:6], width, height, full_grad=full_grad, backend="torch",
+                    depth_slopes=ref_in[6] if len(inputs) > 6 else None)  # fmt: skip
     for name, a, b in zip(fast._fields, fast, ref, strict=True):
         assert a.dtype == dtype, name
         assert max_rel_error(a, b) <= TOL[dtype], name
@@ -65,6 +75,21 @@ def test_rasterize_matches_reference(dtype, full_grad):
     for seed in range(3):
         inputs = random_screen_gaussians(250, WIDTH, HEIGHT, seed=seed)
         _compare_rasterize(inputs, dtype, full_grad=full_grad, seed=seed)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("full_grad", [True, False])
+def test_rasterize_with_depth_slopes_matches_reference(dtype, full_grad):
+    """Each Gaussian's depth a plane across the screen: the depth, its variance and every
+    gradient (the slopes' own, and the means' through ``p − μ``) as the oracle's."""
+    for seed in range(2):
+        inputs = (*random_screen_gaussians(250, WIDTH, HEIGHT, seed=seed),
+                  _random_slopes(250, seed))  # fmt: skip
+        out, grads = _compare_rasterize(inputs, dtype, full_grad=full_grad, seed=seed)
+        assert grads[6].abs().max() > 0
+        flat = rasterize(*(t.to(dtype) for t in inputs[:6]), WIDTH, HEIGHT)
+        assert max_rel_error(out.depth, flat.depth) > 1e-3  # the planes change the depth …
+        assert torch.equal(out.color, flat.color)  # … and nothing else
 
 
 def test_full_and_authors_gradients_differ_only_through_transmittance():
@@ -87,7 +112,7 @@ def _project_both(gaussians: Gaussians, dtype, camera=CAMERA):
         base = torch.eye(4, dtype=cast)
         base[:3, 3] = torch.tensor([0.1, -0.05, 0.2], dtype=cast)
         proj = project(*params[:4], se3_exp(xi) @ base, camera, backend=backend)
-        grads = random_vjp(proj[:3], [*params[:3], xi], seed=3)
+        grads = random_vjp(proj[:4], [*params[:3], xi], seed=3)
         results.append((proj, grads))
     return results
 
@@ -96,7 +121,7 @@ def _project_both(gaussians: Gaussians, dtype, camera=CAMERA):
 def test_project_matches_reference(dtype):
     (fast, g_fast), (ref, g_ref) = _project_both(random_gaussians(300, seed=1), dtype)
     assert torch.equal(fast.ids, ref.ids) and len(ref.ids) > 200
-    for a, b in zip(fast[:3], ref[:3], strict=True):
+    for a, b in zip(fast[:4], ref[:4], strict=True):
         assert a.dtype == dtype and max_rel_error(a, b) <= TOL[dtype]
     for a, b in zip(g_fast, g_ref, strict=True):
         assert a.dtype == dtype and max_rel_error(a, b) <= TOL[dtype]
@@ -175,10 +200,10 @@ def test_gradcheck_rasterize():
 
     Fast mode checks random projections ``uᵀJv`` instead of all 2 520 output rows.
     """
-    inputs = _requires_grad(random_screen_gaussians(12, 20, 14, seed=4))
+    inputs = _requires_grad((*random_screen_gaussians(12, 20, 14, seed=4), _random_slopes(12, 4)))
 
     def fn(*args):
-        return tuple(rasterize(*args, 20, 14))
+        return tuple(rasterize(*args[:6], 20, 14, depth_slopes=args[6]))
 
     assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
 

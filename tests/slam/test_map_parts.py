@@ -10,11 +10,18 @@ import torch.nn.functional as F
 from bgs_batch.config import MappingConfig, SeedingConfig, SubmapConfig, load_config
 from bgs_batch.geometry import pose_matrix
 from bgs_batch.metrics import align_rigid, ate
-from bgs_batch.render import Camera
+from bgs_batch.render import Camera, project, rasterize, render
+from bgs_batch.render.reference import quat_wxyz_to_matrix
 from bgs_batch.slam.frames import Level, block_mean, downsample, repeat_blocks
 from bgs_batch.slam.gaussian_map import GaussianMap
 from bgs_batch.slam.mapping import Keyframe, Mapper
-from bgs_batch.slam.seeding import backproject, far_from, keyframe_seed_pixels, submap_seed_pixels
+from bgs_batch.slam.seeding import (
+    backproject,
+    far_from,
+    keyframe_seed_pixels,
+    submap_seed_pixels,
+    surface_normals,
+)
 from bgs_batch.slam.submaps import exceeds_motion
 
 K = np.array([[50.0, 0, 15.5], [0, 50.0, 11.5], [0, 0, 1]])
@@ -37,6 +44,66 @@ def test_backproject_inverts_projection():
     pushed = backproject(depth, pixels, K, c2w, 1.005)
     assert np.allclose(np.linalg.norm(pushed - c2w[:3, 3], axis=1),
                        1.005 * np.linalg.norm(points - c2w[:3, 3], axis=1))  # fmt: skip
+
+
+def test_surface_normals_of_a_slanted_plane():
+    """The depth image of the plane n·X = 2 (camera frame) gives n at every pixel whose four
+    neighbours have depth, turned into the world frame; NaN at the border and beside a hole."""
+    normal = unit([0.3, -0.2, -1.0])
+    v, u = np.mgrid[0:24, 0:32]
+    rays = np.stack([(u - 15.5) / 50, (v - 11.5) / 50, np.ones_like(u, float)], -1)
+    depth = (-2.0 / (rays @ normal)).astype(np.float32)  # n·(z·ray) = −2: the plane in front
+    depth[10, 10] = 0.0
+    c2w = pose_matrix([0.3, -0.2, 1.0], unit([0.1, 0.2, 0.3, 0.927]))
+    pixels = np.array([5 * 32 + 5, 11 * 32 + 20, 10 * 32 + 11, 0, 23 * 32 + 7])
+    got = surface_normals(depth, pixels, K, c2w)
+    expected = c2w[:3, :3] @ normal
+    for n in got[:2]:
+        assert abs(abs(n @ expected) - 1) < 1e-4  # a plane's normal, either side
+    assert np.isnan(got[2:]).all()  # beside the hole, on the border
+
+
+def test_gaussian_map_adds_discs_across_the_given_normals():
+    rng = np.random.default_rng(1)
+    normals = rng.normal(size=(6, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals[2] = [0.0, 0.0, -1.0]  # the rotation's antipode: flipped, a disc has no side
+    normals[5] = np.nan  # no normal: a ball, as without normals
+    gmap = GaussianMap()
+    gmap.add(rng.normal(size=(6, 3)), np.full((6, 3), 0.5), 0.5, -7.0, normals, 0.1)
+    rot = quat_wxyz_to_matrix(gmap.params["quats"].detach().double()).numpy()
+    scales = gmap.params["log_scales"].detach().exp().numpy()
+    for i in range(5):
+        assert abs(abs(rot[i, :, 2] @ normals[i]) - 1) < 1e-6  # the thin axis along the normal
+        assert scales[i, 2] == pytest.approx(0.1 * scales[i, 0], rel=1e-5)
+        assert scales[i, 0] == scales[i, 1]
+    assert np.allclose(rot[5], np.eye(3)) and np.ptp(scales[5]) == 0
+
+
+def test_discs_on_a_slanted_surface_render_its_depth():
+    """Seeds on the surface, flat across its normal: each one's depth plane is the surface, so
+    the blended depth is the measured one (docs/method.md §1). Blending the centres' depths
+    instead weighs the nearer Gaussians of a slanted surface more: the map renders in front."""
+    camera = Camera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, width=64, height=48)
+    x, y = np.meshgrid(np.arange(-1.6, 1.6, 0.02), np.arange(-1.2, 1.2, 0.02))
+    points = np.stack([x, y, 2 + 0.6 * x], -1).reshape(-1, 3)  # z = 2 + 0.6 x, 31° of slant
+    normals = np.tile(unit([-0.6, 0.0, 1.0, 0.0])[:3], (len(points), 1))
+    gmap = GaussianMap()
+    gmap.add(points, np.full((len(points), 3), 0.5), 0.9, -7.0, normals, 0.1)
+    g = gmap.gaussians()
+    v, u = np.mgrid[0:48, 0:64]
+    truth = torch.from_numpy(2 / (1 - 0.6 * (u - 31.5) / 60))  # where each pixel's ray meets it
+    with torch.no_grad():
+        out = render(g, torch.eye(4), camera)
+        proj = project(g.means, g.log_scales, g.quats, g.opacity_logits, torch.eye(4), camera)
+        centres = rasterize(proj.means2d, proj.conics, proj.depths,
+                            torch.sigmoid(g.opacity_logits[proj.ids]), g.colors[proj.ids],
+                            F.softplus(g.uncertainty_logits[proj.ids]), 64, 48)  # fmt: skip
+    assert (out.alpha > 0.99).all()
+    error = out.normalized_depth()[..., 0] / truth - 1
+    assert error.abs().median() < 5e-4 and error.abs().max() < 3e-3
+    biased = centres.normalized_depth()[..., 0] / truth - 1
+    assert biased.median() < -5e-3
 
 
 def test_submap_seeding_covers_edges_and_skips_invalid_depth():
@@ -172,18 +239,13 @@ def test_ate_closed_forms():
     assert ate(moved, gt_nan)["frames"] == 49
 
 
-ON_SURFACE = ["seeding.global_shutter_depth_push=1.0"]
-
-
-@pytest.mark.parametrize(("overrides", "readouts", "push"), [
-    (ON_SURFACE, (0.0, 0.0), 1.0),  # both images at once: seeds on the surface
-    (ON_SURFACE, (0.03, 0.03), 1.005),  # a rolling shutter in either image keeps the push
-    (ON_SURFACE, (0.03, 0.0), 1.005),
-    (ON_SURFACE, (0.0, 0.03), 1.005),
-    ([], (0.0, 0.0), 1.005),  # unset: LoopSplat's push for every camera
+@pytest.mark.parametrize(("preset", "readouts", "push", "flatness"), [
+    ("cpu", (0.0, 0.0), 1.0, 0.1),  # discs on the surface, whatever the shutters
+    ("cpu", (0.03, 0.03), 1.0, 0.1),
+    ("paper", (0.0, 0.0), 1.005, 1.0),  # LoopSplat's: balls 0.5 % behind it
 ])  # fmt: skip
-def test_seeds_sit_behind_the_surface_by_the_cameras_push(overrides, readouts, push):
-    cfg = dataclasses.replace(load_config("cpu", overrides), rolling_shutter_readout=readouts[0],
+def test_seeds_sit_at_the_presets_push_and_shape(preset, readouts, push, flatness):
+    cfg = dataclasses.replace(load_config(preset), rolling_shutter_readout=readouts[0],
                               depth_rolling_shutter_readout=readouts[1])  # fmt: skip
     height, width = 24, 32
     rgb = torch.rand(height, width, 3, generator=torch.Generator().manual_seed(0))
@@ -195,3 +257,11 @@ def test_seeds_sit_behind_the_surface_by_the_cameras_push(overrides, readouts, p
                                          np.random.default_rng(0))  # fmt: skip
     assert added > 0
     np.testing.assert_allclose(gmap.means.detach().numpy()[:, 2], 2.0 * push, rtol=1e-6)
+    inner = np.isfinite(surface_normals(depth[..., 0].numpy(), np.arange(height * width), K,
+                                        np.eye(4))).all(1)  # fmt: skip
+    scales = gmap.params["log_scales"].detach().exp().numpy()
+    rot = quat_wxyz_to_matrix(gmap.params["quats"].detach().double()).numpy()
+    discs = scales[:, 2] < scales[:, 0]
+    assert discs.sum() == (inner.sum() if flatness < 1 else 0)  # a wall facing the camera
+    np.testing.assert_allclose(scales[discs, 2], flatness * scales[discs, 0], rtol=1e-5)
+    np.testing.assert_allclose(np.abs(rot[discs, 2, 2]), 1.0, atol=1e-6)

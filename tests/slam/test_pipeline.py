@@ -181,8 +181,7 @@ def test_pivot_turns_the_camera_about_a_point_in_the_scene(store30, tmp_path):
         cfg = load_config("cpu", [*base, f"tracking.pivot_depth_ratio={ratio}"])
         result = Tracker(cfg).track(slam.gmap, full, *sensor, start)
         errors[ratio] = float(np.linalg.norm((gt @ result.w2c.numpy())[:3, 3]))
-    # measured: 2.3 cm about the camera centre, 0.26 cm about the point at half the depth
-    assert errors[0.5] < 0.006 < 0.012 < errors[0.0], errors
+    assert errors[0.5] < 0.006 and errors[0.5] < 0.5 * errors[0.0], errors
 
 
 @pytest.mark.slow

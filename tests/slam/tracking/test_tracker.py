@@ -98,15 +98,16 @@ def test_gauss_newton_refines_an_offset_start_in_few_iterations(mapped):
         identity = torch.eye(4, dtype=torch.float64)  # no pivot
         _, adam_loss, _, _, _ = tracker._optimise(objective, start, identity, 20)
         _, optimum_loss, _, _, _ = tracker._gauss_newton(objective, optimum, 1)
+        minimum, _, _, _, _ = tracker._gauss_newton(objective, optimum, 40)
     finally:
         for p in slam.gmap.params.values():
             p.requires_grad_(True)
-    # converged: the loss within 0.1 % of the registration optimum's, the pose near it (the
-    # paper's loss and the registration's residuals need not share one minimum exactly)
+    # converged: the loss within 0.1 % of the registration optimum's, the pose at the minimum of
+    # the paper's loss (which the registration's residuals need not share exactly)
     assert used <= 12 and images is not None
     assert loss < optimum_loss * 1.001, (loss, optimum_loss)
-    degrees, metres = _error(w2c, optimum)
-    assert degrees < 0.1 and metres < 3e-3, (degrees, metres)
+    degrees, metres = _error(w2c, minimum)
+    assert degrees < 0.02 and metres < 5e-4, (degrees, metres)
     assert loss < adam_loss, (loss, adam_loss)  # 20 of Adam's fixed-size steps end higher
 
 
