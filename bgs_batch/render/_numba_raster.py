@@ -2,7 +2,7 @@
 
 Layout: ``feats[M, 4]`` holds RGB and the camera depth of each Gaussian, so colour and depth are
 composited by the same loop; ``slopes[M, 2]`` tilt each Gaussian's depth into a plane across the
-screen, so the depth feature at a pixel is ``d + s·(p − μ₂)`` (:func:`lane_features`). Work is
+screen, so the depth feature at a pixel is ``d + s·(p − μ₂)`` (:func:`lane_feature`). Work is
 split over screen tiles of ``TILE_SIZE`` pixels; within a tile the Gaussians (depth sorted) form
 the outer loop. A tile's lanes are ordered by column block (``LANE_BLOCK`` columns, one SIMD
 vector), then row, then column (:func:`lane_index`), so the rows of a Gaussian's opacity-aware
@@ -339,10 +339,11 @@ def gaussian_weight(dx, dy, a, b, c, consts):
 
 
 @numba.njit(cache=True, fastmath=CALLEE_FASTMATH, inline="always")
-def lane_features(fs, sx, sy, dx, dy):
-    """A Gaussian's features at a lane ``(dx, dy)`` from its centre: the colour, and the depth
-    of its plane ``d + sx·dx + sy·dy`` (the depth where the pixel's ray meets it)."""
-    return (fs[0], fs[1], fs[2], fs[3] + sx * dx + sy * dy)
+def lane_feature(fs, ch, sx, sy, dx, dy):
+    """Feature ``ch`` of a Gaussian at a lane ``(dx, dy)`` from its centre: its colour, or the
+    depth of its plane ``d + sx·dx + sy·dy`` (where the pixel's ray meets it). A select on the
+    channel, not a tuple built per lane: indexing that by the channel kept the loops scalar."""
+    return fs[ch] + sx * dx + sy * dy if ch == N_FEAT - 1 else fs[ch]
 
 
 @numba.njit(cache=True, fastmath=CALLEE_FASTMATH, error_model="numpy")
@@ -365,7 +366,6 @@ def blend_span(buf, done, last, p0, p1, kk, o, v, mx, my, a, b, c, fs, sx, sy, x
         was_done, last_j, t_old = done[j], last[j], buf[FT + j]
         dx, dy = x - mx, buf[LANE_Y + j] - my
         e = gaussian_weight(dx, dy, a, b, c, consts)
-        fl = lane_features(fs, sx, sy, dx, dy)
         alpha = min(alpha_max, o * e)
         hit = (x >= x0) & (x <= x1) & (was_done == 0) & (alpha >= alpha_min)
         alpha = alpha if hit else zero
@@ -380,7 +380,7 @@ def blend_span(buf, done, last, p0, p1, kk, o, v, mx, my, a, b, c, fs, sx, sy, x
         # it, so adding f once (exactly) sets it
         first = one if (w > zero) & (last_j < 0) else zero
         for ch in range(N_FEAT):
-            f, at = fl[ch], CH * np.uint64(ch) + j
+            f, at = lane_feature(fs, ch, sx, sy, dx, dy), CH * np.uint64(ch) + j
             ref = buf[FREF + at] + f * first
             buf[FREF + at] = ref
             buf[FACC + at] += f * w
@@ -495,12 +495,13 @@ def unblend_lane(buf, last, j, kk, mx, my, a, b, c, o, x0, x1, y0, y1, consts):
 
 
 @numba.njit(cache=True, fastmath=CALLEE_FASTMATH)
-def variance_residual(buf, j, fs, zero):
-    """``q = Σ_ch ∂L/∂V (f − F)²`` at lane j for the lane's features ``fs``."""
+def variance_residual(buf, j, fs, sx, sy, dx, dy, zero):
+    """``q = Σ_ch ∂L/∂V (f − F)²`` at lane j (offset ``dx, dy``) for the features ``fs`` and
+    depth slopes ``sx, sy`` (:func:`lane_feature`)."""
     q = zero
     for ch in range(N_FEAT):
         at = CH * np.uint64(ch) + j
-        d = fs[ch] - buf[BFIN + at]
+        d = lane_feature(fs, ch, sx, sy, dx, dy) - buf[BFIN + at]
         q += buf[BGV + at] * d * d
     return q
 
@@ -527,8 +528,8 @@ def unblend_span(buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, sx, sy, 
                 dx, dy, _, _, _, _, square = unblend_lane(
                     buf, last, j, kk, mx, my, a, b, c, o, x0, x1, y0, y1, consts
                 )  # fmt: skip
-                fl = lane_features(fs, sx, sy, dx, dy)
-                acc[A_VAR + lane] += square * variance_residual(buf, j, fl, zero)
+                q = variance_residual(buf, j, fs, sx, sy, dx, dy, zero)
+                acc[A_VAR + lane] += square * q
         return
     for r0 in range(p0, p1, step):
         for lane in range(step):
@@ -538,12 +539,11 @@ def unblend_span(buf, last, acc, p0, p1, kk, o, v, mx, my, a, b, c, fs, sx, sy, 
             )
             w = alpha * t
             mom = v * square
-            fl = lane_features(fs, sx, sy, dx, dy)
-            q = variance_residual(buf, j, fl, zero)
+            q = variance_residual(buf, j, fs, sx, sy, dx, dy, zero)
             g_dot_f = zero  # ⟨∂L/∂F, f_i⟩
             g_lane = zero  # ∂L/∂f of the last feature, the depth at this lane
             for ch in range(N_FEAT):
-                f, at = fl[ch], CH * np.uint64(ch) + j
+                f, at = lane_feature(fs, ch, sx, sy, dx, dy), CH * np.uint64(ch) + j
                 g_f = buf[BGFIN + at]
                 g_dot_f += g_f * f
                 d = f - buf[BFIN + at]
