@@ -86,6 +86,9 @@ def rasterize(
     """
     if depth_slopes is None:
         depth_slopes = means2d.new_zeros(means2d.shape)
+    if depth_slopes.shape != means2d.shape:
+        raise ValueError(f"depth_slopes must be {list(means2d.shape)}, got "
+                         f"{list(depth_slopes.shape)}")  # fmt: skip
     args = (means2d, conics, depths, opacities, colors, variances, depth_slopes)
     if backend == "torch":
         return RasterOutput(*rasterize_ref(*args, width, height, full_grad))

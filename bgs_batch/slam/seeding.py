@@ -86,15 +86,13 @@ def surface_normals(depth: np.ndarray, pixels: np.ndarray, intrinsics: np.ndarra
     """World unit normals (M, 3) of the measured surface at flat pixel indices, from the depth
     image's central differences; NaN where a neighbour has no depth or the image border cuts."""
     h, w = depth.shape
-    fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
     v, u = np.divmod(pixels, w)
     inside = (u > 0) & (u < w - 1) & (v > 0) & (v < h - 1)
     u, v = np.clip(u, 1, w - 2), np.clip(v, 1, h - 2)
+    measured = np.where(depth > 0, depth, np.nan)
 
-    def point(du: int, dv: int) -> np.ndarray:
-        z = depth[v + dv, u + du].astype(np.float64)
-        z = np.where(z > 0, z, np.nan)
-        return np.stack([(u + du - cx) / fx * z, (v + dv - cy) / fy * z, z], axis=1)
+    def point(du: int, dv: int) -> np.ndarray:  # camera-frame points of the neighbours
+        return backproject(measured, (v + dv) * w + u + du, intrinsics, np.eye(4), 1.0)
 
     normal = np.cross(point(1, 0) - point(-1, 0), point(0, 1) - point(0, -1))
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)

@@ -335,6 +335,8 @@ def test_rejects_bad_inputs():
         rasterize(inputs[0], -inputs[1], *inputs[2:], 8, 8)
     with pytest.raises(ValueError, match="unknown backend"):
         rasterize(*inputs, 8, 8, backend="cuda")
+    with pytest.raises(ValueError, match="depth_slopes must be"):
+        rasterize(*inputs, 8, 8, depth_slopes=inputs[0][:-1])
 
 
 @pytest.mark.slow
