@@ -719,6 +719,12 @@ def check(config: Config) -> None:
     if sm.log_ratio_max < sm.log_ratio_min:
         raise ConfigError(f"smoothing.log_ratio_max={sm.log_ratio_max} is below "
                           f"smoothing.log_ratio_min={sm.log_ratio_min}")
+    # the sensor variances, evaluated at mapping resolution, block-average onto each tracking level
+    tracking_scale, mapping_scale = config.tracking.downscale, config.mapping.downscale
+    if tracking_scale % mapping_scale:
+        raise ConfigError(f"tracking.downscale={tracking_scale} must be a multiple of "
+                          f"mapping.downscale={mapping_scale}; set both (e.g. "
+                          f"mapping.downscale={tracking_scale})")
 
 
 def for_store(config: Config, store: StoreFacts) -> tuple[Config, dict[str, str]]:

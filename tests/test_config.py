@@ -49,6 +49,7 @@ def test_round_trip_through_dict():
         ("seed.x=1", "is a value"),
         ("uncertainty.sensor_initial=1e-5", "must exceed uncertainty.sensor_min"),
         ("smoothing.log_ratio_max=-5", "is below smoothing.log_ratio_min=-2"),
+        ("tracking.downscale=1", "tracking.downscale=1 must be a multiple of mapping.downscale=2"),
     ],
 )
 def test_bad_overrides_are_explained(override, message):
